@@ -67,23 +67,19 @@ def load_config(
         for path in files:
             cfg = _merge(cfg, _read_yaml_with_defaults(path), str(path))
     if overrides:
-        if isinstance(overrides, Mapping):
-            items = [f"{k}={v}" for k, v in overrides.items()]
-            try:
+        try:
+            if isinstance(overrides, Mapping):
                 dot = OmegaConf.create()
                 for k, v in overrides.items():
                     OmegaConf.update(dot, k, v, force_add=True)
-            except OmegaConfBaseException as err:
-                raise ConfigError(_format_omegaconf_error(err, "overrides")) from None
-        else:
-            items = list(overrides)
-            for item in items:
-                if "=" not in item:
-                    raise ConfigError(f"override '{item}' is not of the form a.b=value")
-            try:
+            else:
+                items = list(overrides)
+                for item in items:
+                    if "=" not in item:
+                        raise ConfigError(f"override '{item}' is not of the form a.b=value")
                 dot = OmegaConf.from_dotlist(items)
-            except OmegaConfBaseException as err:
-                raise ConfigError(_format_omegaconf_error(err, "overrides")) from None
+        except OmegaConfBaseException as err:
+            raise ConfigError(_format_omegaconf_error(err, "overrides")) from None
         cfg = _merge(cfg, dot, "overrides")
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:

@@ -98,9 +98,7 @@ class _Segment:
 
     def to_mjcf(self) -> str:
         """The MJCF ``<geom>`` element (``fromto`` form)."""
-        return (
-            f'<geom type="{self.kind}" fromto="{fmt(self.p0 + self.p1)}" size="{fmt(self.radius)}" {_GEOM_COMMON}/>'
-        )
+        return f'<geom type="{self.kind}" fromto="{fmt(self.p0 + self.p1)}" size="{fmt(self.radius)}" {_GEOM_COMMON}/>'
 
     def to_dict(self) -> dict:
         """A JSON-able dict with a ``kind`` tag."""

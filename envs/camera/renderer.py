@@ -11,6 +11,7 @@ from envs.camera import _raycast as rc
 from envs.camera.config import CameraConfig
 from envs.camera.model import camera_poses, intrinsics, ray_grid
 from envs.scenes.primitives import Box, Capsule, Cylinder, Sphere
+from envs.scenes.scene import SLAB_THICKNESS
 
 SceneLike = Any
 """A ``envs.scenes.Scene`` or a sequence of primitives (``Sphere``, ``Cylinder``, ``Capsule``, ``Box``)."""
@@ -41,10 +42,16 @@ def _scene_parts(scene: SceneLike) -> tuple[list, list]:
     """Static primitives (obstacles, then floor/ceiling slabs) and moving cylinders (at t = 0) of a scene."""
     if hasattr(scene, "primitives"):
         static = list(scene.primitives)
-        # Floor and ceiling are the scene's finite slabs, exactly as in its MJCF (Scene.to_mjcf_geoms).
-        slabs = scene._slabs() if hasattr(scene, "_slabs") else []
-        moving = [m.cylinder for m in getattr(scene, "moving", ())]
-        return static + list(slabs), moving
+        # Floor and ceiling: the scene's finite slabs of SLAB_THICKNESS, covering the bounds in xy, with inner
+        # faces at bounds_lo.z and bounds_hi.z, exactly as Scene.to_mjcf_geoms writes them (docs of envs.scenes).
+        lo, hi = np.asarray(scene.bounds_lo, dtype=float), np.asarray(scene.bounds_hi, dtype=float)
+        cxy, hxy, t = 0.5 * (lo[:2] + hi[:2]), 0.5 * (hi[:2] - lo[:2]), 0.5 * SLAB_THICKNESS
+        if scene.floor:
+            static.append(Box((cxy[0], cxy[1], lo[2] - t), (hxy[0], hxy[1], t)))
+        if scene.ceiling:
+            static.append(Box((cxy[0], cxy[1], hi[2] + t), (hxy[0], hxy[1], t)))
+        moving = [m.cylinder for m in scene.moving]
+        return static, moving
     return list(scene), []
 
 

@@ -1,0 +1,133 @@
+"""Depth image -> world-frame point cloud (for the HOCBF shield), with optional voxel downsampling."""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from envs.camera.config import CameraConfig
+from envs.camera.model import R_bc, ray_grid
+
+_NJIT = {"cache": True, "fastmath": False, "nogil": True}
+_GRID_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _grid(cfg: CameraConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cached ``(x_u, y_v, R_bc)`` for a camera configuration (keyed by the fields they depend on)."""
+    key = (cfg.width, cfg.height, cfg.hfov_deg, cfg.vfov_deg, cfg.mount_pitch_deg)
+    hit = _GRID_CACHE.get(key)
+    if hit is None:
+        x_u, y_v = ray_grid(cfg)
+        hit = _GRID_CACHE[key] = (x_u, y_v, R_bc(cfg))
+    return hit
+
+
+@nb.njit(**_NJIT)
+def _backproject(
+    depth: np.ndarray,
+    pos_w: np.ndarray,
+    R_wb: np.ndarray,
+    mount_b: np.ndarray,
+    Rbc: np.ndarray,
+    x_u: np.ndarray,
+    y_v: np.ndarray,
+    zhi: float,
+    out: np.ndarray,
+) -> int:
+    """Write world points of pixels with 0 < z < zhi into ``out`` (H*W, 3); return their count."""
+    # Camera pose: o_w = pos_w + R_wb mount_b, R_wc = R_wb R_bc.
+    o = pos_w + R_wb @ mount_b
+    R = R_wb @ Rbc
+    H, W = depth.shape
+    m = 0
+    for v in range(H):
+        y = y_v[v]
+        for u in range(W):
+            z = depth[v, u]
+            if not (z > 0.0 and z < zhi):  # also drops NaN
+                continue
+            # p_c = z (x_u, y_v, 1);  p_w = o_w + R_wc p_c
+            xc, yc = z * x_u[u], z * y
+            out[m, 0] = o[0] + R[0, 0] * xc + R[0, 1] * yc + R[0, 2] * z
+            out[m, 1] = o[1] + R[1, 0] * xc + R[1, 1] * yc + R[1, 2] * z
+            out[m, 2] = o[2] + R[2, 0] * xc + R[2, 1] * yc + R[2, 2] * z
+            m += 1
+    return m
+
+
+@nb.njit(**_NJIT)
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Centroid of the points in each occupied cubic voxel of edge ``voxel`` (m), in first-seen order.
+
+    Voxel of a point: ``floor(p / voxel)`` per axis; an open-addressing hash table maps voxel -> slot.
+    """
+    n = points.shape[0]
+    size = 1
+    while size < 2 * n + 1:
+        size *= 2
+    keys = np.empty((size, 3), dtype=np.int64)
+    slot = np.full(size, -1, dtype=np.int64)
+    acc = np.zeros((n, 3))
+    cnt = np.zeros(n, dtype=np.int64)
+    m = 0
+    inv = 1.0 / voxel
+    for i in range(n):
+        ix = int(math.floor(points[i, 0] * inv))
+        iy = int(math.floor(points[i, 1] * inv))
+        iz = int(math.floor(points[i, 2] * inv))
+        h = ((ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)) & (size - 1)
+        while slot[h] >= 0 and not (keys[h, 0] == ix and keys[h, 1] == iy and keys[h, 2] == iz):
+            h = (h + 1) & (size - 1)
+        if slot[h] < 0:
+            slot[h] = m
+            keys[h, 0], keys[h, 1], keys[h, 2] = ix, iy, iz
+            m += 1
+        j = slot[h]
+        acc[j, 0] += points[i, 0]
+        acc[j, 1] += points[i, 1]
+        acc[j, 2] += points[i, 2]
+        cnt[j] += 1
+    out = np.empty((m, 3))
+    for j in range(m):
+        out[j, 0], out[j, 1], out[j, 2] = acc[j, 0] / cnt[j], acc[j, 1] / cnt[j], acc[j, 2] / cnt[j]
+    return out
+
+
+def depth_to_points(
+    depth: np.ndarray, pos_w: np.ndarray, R_wb: np.ndarray, cfg: CameraConfig, voxel: float | None = None
+) -> np.ndarray:
+    """World-frame points (M, 3) float64 seen in one depth image.
+
+    Pixel (v, u) with depth z maps to ``o_w + R_wc z (x_u, y_v, 1)`` (see ``envs.camera.model``). Invalid
+    pixels (``z <= 0`` or NaN) and pixels without a return (``z >= max_range``) are dropped; pixels clamped to
+    ``min_range`` are kept (something is at least that close).
+
+    Args:
+        depth: Depth (H, W), or (1, H, W) / (1, 1, H, W), metres.
+        pos_w: Body origin (3,) in the world frame at the time the image was taken.
+        R_wb: Body-to-world rotation (3, 3).
+        cfg: The camera configuration the image was rendered with.
+        voxel: If given, return one point (the centroid) per occupied voxel of this edge length (m).
+
+    Returns:
+        Points (M, 3), float64.
+    """
+    d = np.asarray(depth)
+    if d.shape != (cfg.height, cfg.width):
+        d = d.reshape(cfg.height, cfg.width)
+    pos = np.asarray(pos_w, dtype=np.float64).reshape(3)
+    R = np.asarray(R_wb, dtype=np.float64).reshape(3, 3)
+    if not (np.isfinite(pos).all() and np.isfinite(R).all()):
+        raise ValueError("depth_to_points: camera pose must be finite")
+    x_u, y_v, Rbc = _grid(cfg)
+    out = np.empty((d.size, 3))
+    mount = np.asarray(cfg.mount_pos_b, dtype=np.float64)
+    m = _backproject(d, pos, R, mount, Rbc, x_u, y_v, float(cfg.max_range), out)
+    pts = out[:m]
+    if voxel is not None:
+        if not voxel > 0.0:
+            raise ValueError(f"voxel must be > 0, got {voxel}")
+        pts = voxel_downsample(pts, float(voxel))
+    return pts

@@ -27,7 +27,7 @@ class ConfigError(ValueError):
 
 def _format_omegaconf_error(err: OmegaConfBaseException, source: str) -> str:
     key = getattr(err, "full_key", None) or getattr(err, "key", None)
-    msg = getattr(err, "msg", None) or str(err).splitlines()[0]
+    msg = (getattr(err, "msg", None) or str(err)).strip().splitlines()[0]
     where = f" (from {source})" if source else ""
     if key:
         return f"config key '{key}'{where}: {msg}"

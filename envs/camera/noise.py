@@ -9,13 +9,11 @@ from envs.camera.config import CameraConfig, DepthNoiseConfig
 
 
 @nb.njit(cache=True, fastmath=False, nogil=True)
-def _paint_holes(
-    img: np.ndarray, env: np.ndarray, cu: np.ndarray, cv: np.ndarray, au: np.ndarray, av: np.ndarray
-) -> None:
-    """Zero the pixels of ``img[env[k]]`` (E, H, W) inside ellipse k (centre cu, cv; semi-axes au, av; pixels)."""
-    _, H, W = img.shape
-    for k in range(env.shape[0]):
-        e = env[k]
+def _paint_holes(img: np.ndarray, holes: np.ndarray) -> None:
+    """Zero the pixels of ``img`` (H, W) inside the ellipses ``holes`` (K, 4): centre (u, v), semi-axes (u, v)."""
+    H, W = img.shape
+    cu, cv, au, av = holes[:, 0], holes[:, 1], holes[:, 2], holes[:, 3]
+    for k in range(holes.shape[0]):
         v0, v1 = max(int(np.floor(cv[k] - av[k])), 0), min(int(np.ceil(cv[k] + av[k])), H - 1)
         u0, u1 = max(int(np.floor(cu[k] - au[k])), 0), min(int(np.ceil(cu[k] + au[k])), W - 1)
         for v in range(v0, v1 + 1):
@@ -23,7 +21,90 @@ def _paint_holes(
             for u in range(u0, u1 + 1):
                 du = (u + 0.5 - cu[k]) / au[k]
                 if du * du + dv * dv <= 1.0:  # pixel centre inside the ellipse
-                    img[e, v, u] = 0.0
+                    img[v, u] = 0.0
+
+
+@nb.njit(cache=True, fastmath=False, nogil=True)
+def _corrupt_pixels(
+    clean: np.ndarray,
+    out: np.ndarray,
+    rng: np.random.Generator,
+    edge_prob: float,
+    edge_thr: float,
+    sigma_k: float,
+    zmin: float,
+    zmax: float,
+    invalid_below: bool,
+    dropout: float,
+) -> None:
+    """Steps 1-4 of ``DepthNoise`` on one frame (H, W): flying pixels, stereo noise, too-close invalid, dropout."""
+    H, W = clean.shape
+    if True:  # keeps the indentation of the per-pixel body readable
+        for v in range(H):
+            for u in range(W):
+                z = clean[v, u]
+                if edge_prob > 0.0:
+                    # the most different 4-neighbour (border pixels: missing neighbours are skipped)
+                    jump = 0.0
+                    if v > 0 and abs(clean[v - 1, u] - z) > abs(jump):
+                        jump = clean[v - 1, u] - z
+                    if v < H - 1 and abs(clean[v + 1, u] - z) > abs(jump):
+                        jump = clean[v + 1, u] - z
+                    if u > 0 and abs(clean[v, u - 1] - z) > abs(jump):
+                        jump = clean[v, u - 1] - z
+                    if u < W - 1 and abs(clean[v, u + 1] - z) > abs(jump):
+                        jump = clean[v, u + 1] - z
+                    if abs(jump) > edge_thr * z and rng.random() < edge_prob:
+                        z = z + rng.random() * jump  # flying pixel between the two surfaces
+                if sigma_k > 0.0 and z < zmax:
+                    # stereo: sigma_z = z^2 * sigma_disparity / (f * baseline) = sigma_k * z^2
+                    z = z + sigma_k * z * z * rng.standard_normal()
+                    z = min(max(z, zmin), zmax)
+                if invalid_below and z <= zmin:
+                    z = 0.0
+                if dropout > 0.0 and rng.random() < dropout:
+                    z = 0.0
+                out[v, u] = z
+
+
+@nb.njit(cache=True, fastmath=False, nogil=True)
+def _capture(
+    clean: np.ndarray,
+    ids: np.ndarray,
+    fresh: np.ndarray,
+    line: np.ndarray,
+    head: np.ndarray,
+    out: np.ndarray,
+    holes: np.ndarray,
+    hole_ptr: np.ndarray,
+    rng: np.random.Generator,
+    edge_prob: float,
+    edge_thr: float,
+    sigma_k: float,
+    zmin: float,
+    zmax: float,
+    invalid_below: bool,
+    dropout: float,
+) -> None:
+    """Corrupt ``clean[e, 0]`` for each env e in ``ids`` into its latency line, then show the line's oldest frame.
+
+    ``line`` (N, L, H, W) is a ring per env; ``head[e]`` is the slot written next (the oldest frame). A fresh
+    env's frame fills all L slots. Env ``ids[k]`` gets the holes ``holes[hole_ptr[k]:hole_ptr[k + 1]]``.
+    """
+    L = line.shape[1]
+    for k in range(ids.shape[0]):
+        e = ids[k]
+        slot = 0 if fresh[k] else head[e]
+        frame = line[e, slot]
+        _corrupt_pixels(clean[e, 0], frame, rng, edge_prob, edge_thr, sigma_k, zmin, zmax, invalid_below, dropout)
+        _paint_holes(frame, holes[hole_ptr[k] : hole_ptr[k + 1]])
+        if fresh[k]:
+            for j in range(1, L):
+                line[e, j] = frame
+            head[e] = 0
+        else:
+            head[e] = (slot + 1) % L
+        out[e, 0] = line[e, head[e]]
 
 
 class DepthNoise:
@@ -96,23 +177,30 @@ class DepthNoise:
         Returns:
             Depth (N, 1, H, W) float32 as the sensor reports it (invalid pixels 0); a new array.
         """
-        clean = np.asarray(clean, dtype=np.float32)
+        clean = np.ascontiguousarray(clean, dtype=np.float32)
         if clean.shape != self._out_buf.shape:
             raise ValueError(f"clean depth must have shape {self._out_buf.shape}, got {clean.shape}")
         due = self.due()
         ids = np.flatnonzero(due)
         if ids.size:
-            frames = self._corrupt(clean[ids, 0], rng)  # (E, H, W)
-            L = self._line_buf.shape[1]
+            cfg, cam = self.cfg, self.cam_cfg
             fresh = self._fresh_buf[ids]
-            if fresh.any():
-                self._line_buf[ids[fresh]] = frames[fresh][:, None]  # fill the whole latency line
-                self._head_buf[ids[fresh]] = 0
-            old = ids[~fresh]
-            self._line_buf[old, self._head_buf[old]] = frames[~fresh]
-            self._head_buf[old] = (self._head_buf[old] + 1) % L
-            # The oldest frame in the line (the next slot to be overwritten) is L - 1 captures old.
-            self._out_buf[ids, 0] = self._line_buf[ids, self._head_buf[ids]]
+            H, W = cam.height, cam.width
+            if cfg.holes_per_frame > 0.0:
+                counts = rng.poisson(cfg.holes_per_frame, size=ids.size)
+                n = int(counts.sum())
+                lo, hi = cfg.hole_radius_px
+                holes = np.stack(
+                    [rng.uniform(0.0, W, n), rng.uniform(0.0, H, n), rng.uniform(lo, hi, n), rng.uniform(lo, hi, n)], 1
+                )
+            else:
+                counts, holes = np.zeros(ids.size, dtype=np.int64), np.zeros((0, 4))
+            hole_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+            _capture(
+                clean, ids, fresh, self._line_buf, self._head_buf, self._out_buf, holes, hole_ptr, rng,
+                cfg.edge_prob, cfg.edge_threshold, cfg.depth_sigma_coeff, cam.min_range, cam.max_range,
+                cfg.invalid_below_min, cfg.dropout_prob,
+            )  # fmt: skip
             # Frame clock: next capture one period later; after a reset, a random phase within one period.
             if self.period > 0.0:
                 nxt = np.full(ids.size, self.period)
@@ -123,37 +211,3 @@ class DepthNoise:
         if self.period > 0.0:
             self._clock_buf -= self.control_dt
         return self._out_buf.copy()
-
-    def _corrupt(self, z: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Apply the per-frame corruptions (steps 1-5 of the class docstring) to clean frames ``z`` (E, H, W)."""
-        cfg, cam = self.cfg, self.cam_cfg
-        z = z.copy()
-        E, H, W = z.shape
-        if cfg.edge_prob > 0.0:
-            # Most different 4-neighbour (edge replicate at the borders).
-            zp = np.pad(z, ((0, 0), (1, 1), (1, 1)), mode="edge")
-            nbrs = np.stack([zp[:, :-2, 1:-1], zp[:, 2:, 1:-1], zp[:, 1:-1, :-2], zp[:, 1:-1, 2:]])  # (4, E, H, W)
-            jump = nbrs - z[None]
-            k = np.abs(jump).argmax(axis=0)
-            jmax = np.take_along_axis(jump, k[None], axis=0)[0]
-            edge = np.abs(jmax) > cfg.edge_threshold * z
-            fly = edge & (rng.random(z.shape, dtype=np.float32) < cfg.edge_prob)
-            z = np.where(fly, z + rng.random(z.shape, dtype=np.float32) * jmax, z)
-        if cfg.depth_sigma_coeff > 0.0:
-            ret = z < cam.max_range  # pixels with a return
-            sigma = np.float32(cfg.depth_sigma_coeff) * z * z  # stereo: sigma_z = z^2 * sigma_disparity / (f b)
-            noisy = z + sigma * rng.standard_normal(z.shape, dtype=np.float32)
-            z = np.where(ret, np.clip(noisy, cam.min_range, cam.max_range), z)
-        if cfg.invalid_below_min:
-            z[z <= cam.min_range] = 0.0
-        if cfg.dropout_prob > 0.0:
-            z[rng.random(z.shape, dtype=np.float32) < cfg.dropout_prob] = 0.0
-        if cfg.holes_per_frame > 0.0:
-            counts = rng.poisson(cfg.holes_per_frame, size=E)
-            env = np.repeat(np.arange(E), counts)
-            n = env.size
-            if n:
-                lo, hi = cfg.hole_radius_px
-                cu, cv = rng.uniform(0.0, W, n), rng.uniform(0.0, H, n)
-                _paint_holes(z, env, cu, cv, rng.uniform(lo, hi, n), rng.uniform(lo, hi, n))
-        return z.astype(np.float32, copy=False)

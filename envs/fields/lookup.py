@@ -1,0 +1,160 @@
+"""Batched trilinear lookups of ESDF, ESDF gradient and geodesic field over many scenes at once.
+
+:class:`FieldStack` packs several scenes' grids into flat arrays and answers ``(scene_ids (N,), points (N, 3))``
+queries in one numba-compiled pass (no Python loop over points). Points are in each scene's own frame.
+
+Trilinear interpolation: with fractional node coordinates ``f = (p - origin) / res``, base node
+``i0 = floor(f)`` (clipped so that ``i0 + 1`` is a node) and weights ``t = f - i0``, the value is
+``sum_{a,b,c in {0,1}} w_a(t_x) w_b(t_y) w_c(t_z) V[i0 + (a, b, c)]`` with ``w_0(t) = 1 - t``, ``w_1(t) = t``.
+
+Outside the grid box (documented clamping): the point is projected onto the box (``q = clip(p)``), values are
+read at ``q``, and with ``o = |p - q|`` the distance outside,
+
+* ESDF: ``d(q) - o`` (leaving the flight volume counts as losing clearance, never as gaining it),
+* geodesic: ``Phi(q) + o`` (leaving the volume is never progress),
+* gradient: the gradient at ``q``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, fastmath=True)
+def _trilinear(
+    ids: np.ndarray,
+    pts: np.ndarray,
+    offset: np.ndarray,
+    shape: np.ndarray,
+    origin: np.ndarray,
+    res: np.ndarray,
+    esdf: np.ndarray,
+    grad: np.ndarray,
+    phi: np.ndarray,
+    want_esdf: bool,
+    want_grad: bool,
+    want_phi: bool,
+    out_esdf: np.ndarray,
+    out_grad: np.ndarray,
+    out_phi: np.ndarray,
+) -> None:
+    for n in range(ids.shape[0]):
+        s = ids[n]
+        nx, ny, nz = shape[s, 0], shape[s, 1], shape[s, 2]
+        r = res[s]
+        fx = (pts[n, 0] - origin[s, 0]) / r
+        fy = (pts[n, 1] - origin[s, 1]) / r
+        fz = (pts[n, 2] - origin[s, 2]) / r
+        # Distance outside the grid box, in voxels per axis, then clamp onto the box.
+        ox = min(fx, 0.0) + max(fx - (nx - 1), 0.0)
+        oy = min(fy, 0.0) + max(fy - (ny - 1), 0.0)
+        oz = min(fz, 0.0) + max(fz - (nz - 1), 0.0)
+        outside = np.sqrt(ox * ox + oy * oy + oz * oz) * r
+        fx = min(max(fx, 0.0), nx - 1.0)
+        fy = min(max(fy, 0.0), ny - 1.0)
+        fz = min(max(fz, 0.0), nz - 1.0)
+        i0 = min(int(fx), nx - 2)
+        j0 = min(int(fy), ny - 2)
+        k0 = min(int(fz), nz - 2)
+        tx, ty, tz = fx - i0, fy - j0, fz - k0
+        sy = nz
+        sx = ny * nz
+        base = offset[s] + i0 * sx + j0 * sy + k0
+        e = 0.0
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        p = 0.0
+        for a in range(2):
+            wa = tx if a else 1.0 - tx
+            for b in range(2):
+                wb = ty if b else 1.0 - ty
+                for c in range(2):
+                    w = wa * wb * (tz if c else 1.0 - tz)
+                    idx = base + a * sx + b * sy + c
+                    if want_esdf:
+                        e += w * esdf[idx]
+                    if want_grad:
+                        g0 += w * grad[idx, 0]
+                        g1 += w * grad[idx, 1]
+                        g2 += w * grad[idx, 2]
+                    if want_phi:
+                        p += w * phi[idx]
+        if want_esdf:
+            out_esdf[n] = e - outside
+        if want_grad:
+            out_grad[n, 0] = g0
+            out_grad[n, 1] = g1
+            out_grad[n, 2] = g2
+        if want_phi:
+            out_phi[n] = p + outside
+
+
+class FieldStack:
+    """Several scenes' fields packed for batched lookups (numpy in, float64 numpy out).
+
+    Args:
+        fields: A sequence of :class:`envs.fields.SceneFields`; ``scene_ids`` index into it.
+
+    Memory: 20 bytes per node (ESDF, 3 gradient components and Phi as float32); a 64 x 32 x 3 m scene at
+    0.1 m (6.4 M nodes) takes about 128 MB.
+    """
+
+    def __init__(self, fields: Sequence) -> None:
+        fields = list(fields)
+        if not fields:
+            raise ValueError("FieldStack needs at least one SceneFields")
+        sizes = [int(np.prod(f.shape)) for f in fields]
+        self.num_scenes = len(fields)
+        self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        self.shape = np.array([f.shape for f in fields], dtype=np.int64)
+        self.origin = np.array([f.origin for f in fields], dtype=np.float64)
+        self.res = np.array([f.res for f in fields], dtype=np.float64)
+        self.phi_unreachable = np.array([f.phi_unreachable for f in fields], dtype=np.float64)
+        self._esdf = np.concatenate([f.esdf.reshape(-1) for f in fields]).astype(np.float32, copy=False)
+        self._phi = np.concatenate([f.phi.reshape(-1) for f in fields]).astype(np.float32, copy=False)
+        self._grad = np.concatenate([f.grad.reshape(-1, 3) for f in fields]).astype(np.float32, copy=False)
+        self._empty1 = np.zeros(0)
+        self._empty3 = np.zeros((0, 3))
+
+    def _check(self, scene_ids: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.asarray(scene_ids)
+        pts = np.asarray(points, dtype=np.float64)
+        if ids.ndim != 1 or pts.shape != (ids.shape[0], 3):
+            raise ValueError(f"expected scene_ids (N,) and points (N, 3); got {ids.shape} and {pts.shape}")
+        if ids.size and (ids.min() < 0 or ids.max() >= self.num_scenes):
+            raise ValueError(f"scene_ids must lie in 0..{self.num_scenes - 1}; got {ids.min()}..{ids.max()}")
+        if not np.isfinite(pts).all():
+            bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+            raise ValueError(f"points must be finite; row {bad} is {pts[bad].tolist()}")
+        return ids.astype(np.int64, copy=False), np.ascontiguousarray(pts)
+
+    def query(
+        self, scene_ids: np.ndarray, points: np.ndarray, esdf: bool = True, grad: bool = True, geodesic: bool = True
+    ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+        """All requested fields in one pass: ``(esdf (N,), esdf_grad (N, 3), geodesic (N,))``, None if not asked."""
+        ids, pts = self._check(scene_ids, points)
+        n = ids.shape[0]
+        out_e = np.empty(n) if esdf else self._empty1
+        out_g = np.empty((n, 3)) if grad else self._empty3
+        out_p = np.empty(n) if geodesic else self._empty1
+        _trilinear(
+            ids, pts, self.offset, self.shape, self.origin, self.res, self._esdf, self._grad, self._phi,
+            esdf, grad, geodesic, out_e, out_g, out_p,
+        )  # fmt: skip
+        return (out_e if esdf else None, out_g if grad else None, out_p if geodesic else None)
+
+    def esdf(self, scene_ids: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Signed distance to the nearest obstacle (N,), metres, negative inside."""
+        return self.query(scene_ids, points, True, False, False)[0]  # type: ignore[return-value]
+
+    def esdf_grad(self, scene_ids: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Interpolated ESDF gradient (N, 3) (unit length away from medial axes)."""
+        return self.query(scene_ids, points, False, True, False)[1]  # type: ignore[return-value]
+
+    def geodesic(self, scene_ids: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Geodesic distance to the goal region (N,), metres (finite; see ``phi_unreachable``)."""
+        return self.query(scene_ids, points, False, False, True)[2]  # type: ignore[return-value]

@@ -137,7 +137,7 @@ class DepthCamera:
         Returns:
             z-depth (N, 1, H, W) float32 in [min_range, max_range]: ``max_range`` where nothing is hit within
             it, ``min_range`` for surfaces closer than that, and ``min_range`` everywhere for a camera whose
-            optical centre is inside an obstacle (or below the floor / above the ceiling).
+            optical centre is inside an obstacle (the floor and ceiling are slabs: inside counts as inside).
 
         Raises:
             ValueError: On non-finite or wrongly shaped poses, non-rotation matrices, or bad scene ids,

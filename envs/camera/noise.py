@@ -196,9 +196,11 @@ class DepthNoise:
             else:
                 counts, holes = np.zeros(ids.size, dtype=np.int64), np.zeros((0, 4))
             hole_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+            # Ranges as the float32 values the clean image holds (a pixel clamped to 0.2 m reads 0.2f > 0.2).
+            zlo, zhi = float(np.float32(cam.min_range)), float(np.float32(cam.max_range))
             _capture(
                 clean, ids, fresh, self._line_buf, self._head_buf, self._out_buf, holes, hole_ptr, rng,
-                cfg.edge_prob, cfg.edge_threshold, cfg.depth_sigma_coeff, cam.min_range, cam.max_range,
+                cfg.edge_prob, cfg.edge_threshold, cfg.depth_sigma_coeff, zlo, zhi,
                 cfg.invalid_below_min, cfg.dropout_prob,
             )  # fmt: skip
             # Frame clock: next capture one period later; after a reset, a random phase within one period.

@@ -72,7 +72,7 @@ def _clutter(
     n: int,
     z_lo: float,
     z_hi: float,
-    max_failures: int = 40,
+    max_failures: int = 100,
 ) -> list[Primitive]:
     """Place ``n`` obstacles whose kinds are drawn from ``weights`` (stops early if the scene saturates)."""
     kinds = list(weights)
@@ -177,10 +177,12 @@ def _gen_benchmark(rng: np.random.Generator, index: int, u: float) -> dict:
     ug = index / (BENCH_GEOMETRIC - 1)
     placer = _placer(rng, LO, HI, _lerp(1.2, MIN_GAP, ug))
     prims = _clutter(rng, placer, {"utrap": 0.5, "deadend": 0.5}, 1 + index // 4, LO[2], HI[2])
+    # Harder levels: more obstacles and a larger share of bulky ones (boxes, walls), fewer thin poles.
     weights = {
-        "vcyl": 0.22, "icyl": 0.16, "box": 0.16, "wall": 0.1, "sphere": 0.08, "frame": 0.1, "pole": 0.18,
+        "vcyl": 0.22, "icyl": 0.16, "box": 0.14 + 0.16 * ug, "wall": 0.08 + 0.12 * ug, "sphere": 0.08,
+        "frame": 0.1, "pole": 0.2 - 0.1 * ug,
     }  # fmt: skip
-    n = int(round(_lerp(90, 420, ug**1.3)))
+    n = int(round(_lerp(150, 520, ug**1.2)))
     prims += _clutter(rng, placer, weights, n, LO[2], HI[2])
     return {"primitives": tuple(prims)}
 
@@ -192,15 +194,15 @@ PERLIN_CELL = 0.5
 def _gen_perlin(rng: np.random.Generator, u: float) -> dict:
     """Full-height box columns where fractal Perlin noise exceeds a threshold; occupancy rises with ``u``.
 
-    The threshold is the noise quantile giving the target occupied fraction. If the free cells (4-connected,
-    after eroding by one cell for the vehicle) do not link the start side to the goal side, the target
-    fraction is lowered by 0.02 and the threshold recomputed, until they do.
+    The threshold is the noise quantile giving the target occupied fraction. If no route with clearance above
+    :data:`PERLIN_CLEARANCE` links the start side to the goal side, the target fraction is lowered by 0.02 and
+    the threshold recomputed, until one does.
     """
     x0, x1 = LO[0] + OBSTACLE_X_MARGIN, HI[0] - OBSTACLE_X_MARGIN
     xs = np.arange(x0 + 0.5 * PERLIN_CELL, x1, PERLIN_CELL)
     ys = np.arange(LO[1] + 0.5 * PERLIN_CELL, HI[1], PERLIN_CELL)
-    noise = perlin2d(rng, xs, ys, scale=_lerp(5.0, 3.0, u), octaves=3)
-    frac = _lerp(0.16, 0.30, u)
+    noise = perlin2d(rng, xs, ys, scale=_lerp(4.0, 2.5, u), octaves=3)
+    frac = _lerp(0.2, 0.36, u)
     while True:
         occ = noise > np.quantile(noise, 1.0 - frac)
         if _perlin_passable(occ):
@@ -215,11 +217,20 @@ def _gen_perlin(rng: np.random.Generator, u: float) -> dict:
     return {"primitives": tuple(prims)}
 
 
-def _perlin_passable(occ: np.ndarray) -> bool:
-    """Whether free lattice cells connect the first and last x columns (4-connectivity)."""
-    free = ~occ
-    labels, _ = ndimage.label(free)  # default structure: 4-connected in 2D
-    first, last = set(labels[0][free[0]].tolist()), set(labels[-1][free[-1]].tolist())
+PERLIN_CLEARANCE = 0.35
+"""Required free-space clearance (m) along some start-to-goal route of a Perlin field (vehicle 0.2 m + slack)."""
+
+
+def _perlin_passable(occ: np.ndarray, up: int = 5) -> bool:
+    """Whether a route with clearance > PERLIN_CLEARANCE links the first and last x columns of the lattice.
+
+    The cell grid is refined ``up`` times (0.1 m), distances to occupied cells come from the exact EDT, and
+    the points with enough clearance are labelled (8-connected) to see if one component touches both ends.
+    """
+    fine = np.repeat(np.repeat(occ, up, axis=0), up, axis=1)
+    clear = ndimage.distance_transform_edt(~fine, sampling=PERLIN_CELL / up) > PERLIN_CLEARANCE
+    labels, _ = ndimage.label(clear, structure=np.ones((3, 3), dtype=bool))
+    first, last = set(labels[0][clear[0]].tolist()), set(labels[-1][clear[-1]].tolist())
     return bool(first & last)
 
 

@@ -1,0 +1,134 @@
+"""Scripted flights for the shield: a naive goal-seeking controller flown straight at a pole or a wall.
+
+No learned policy is involved. The controller tracks a constant-speed velocity towards the goal and ignores
+obstacles entirely, so without the shield it crashes; the full vehicle simulation (MuJoCo physics and contacts,
+PX4-style inner loop) and the depth camera are real. Used by the shield tests, its benchmark and docs/shield.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.camera import CameraConfig, DepthCamera
+from envs.scenes.primitives import Box, Cylinder
+from envs.vehicle.config import VehicleConfig
+from envs.vehicle.vehicles import Vehicles
+from shield_nav.shield import HOCBFShield, ShieldConfig, command_from_accel
+
+OBSTACLE_X = 12.0
+"""Distance from the start to the obstacle's near side [m]."""
+
+
+def obstacle(kind: str) -> tuple[list, callable]:
+    """The primitives of a test obstacle and a function giving the distance from points (N, 3) to its surface."""
+    if kind == "pole":
+        r = 0.15
+        prims = [Cylinder((OBSTACLE_X + r, 0.0, 0.0), (OBSTACLE_X + r, 0.0, 4.0), r)]
+
+        def dist(p: np.ndarray) -> np.ndarray:
+            return np.hypot(p[:, 0] - (OBSTACLE_X + r), p[:, 1]) - r
+
+        return prims, dist
+    if kind == "wall":
+        prims = [Box((OBSTACLE_X + 0.1, 0.0, 2.0), (0.1, 6.0, 2.0))]
+
+        def dist(p: np.ndarray) -> np.ndarray:
+            return OBSTACLE_X - p[:, 0]
+
+        return prims, dist
+    raise ValueError(f"unknown obstacle kind {kind!r}; expected 'pole' or 'wall'")
+
+
+def goal_seeking_command(
+    pos_w: np.ndarray, vel_w: np.ndarray, goal_w: np.ndarray, speed: np.ndarray, cfg: VehicleConfig
+) -> np.ndarray:
+    """Naive velocity tracker: a = 2 (v_d - v) + drag compensation, v_d = speed * (goal - p)/|goal - p|.
+
+    Horizontal acceleration is capped at g tan(40 deg); yaw faces the goal. Returns commands (N, 4).
+    """
+    to_goal = goal_w - pos_w
+    v_d = speed[:, None] * to_goal / np.maximum(np.linalg.norm(to_goal, axis=1, keepdims=True), 1e-6)
+    a = 2.0 * (v_d - vel_w)
+    a += np.array(cfg.airframe.linear_drag) * v_d  # feed-forward the (roughly linear) drag at the target speed
+    cap = cfg.gravity * math.tan(math.radians(40.0))
+    h = np.linalg.norm(a[:, :2], axis=1, keepdims=True)
+    a[:, :2] *= np.minimum(1.0, cap / np.maximum(h, 1e-9))
+    a[:, 2] = np.clip(a[:, 2], -5.0, 5.0)
+    psi = np.arctan2(to_goal[:, 1], to_goal[:, 0])
+    return command_from_accel(a, psi, cfg.gravity)
+
+
+@dataclass
+class FlightLog:
+    """Time series of scripted flights (T steps, N vehicles)."""
+
+    t: np.ndarray
+    """(T,) time [s]."""
+    pos_w: np.ndarray
+    """(T, N, 3) positions."""
+    distance: np.ndarray
+    """(T, N) distance from the vehicle centre to the obstacle surface [m]."""
+    collided: np.ndarray
+    """(N,) bool: MuJoCo reported a contact with the obstacle."""
+    min_distance: np.ndarray
+    """(N,) smallest distance to the obstacle surface [m]."""
+    active: np.ndarray
+    """(T, N) bool: shield active at that step."""
+    solve_us: np.ndarray
+    """(T, N) QP solver time [us] (0 when inactive)."""
+    total_us: np.ndarray
+    """(T, N) whole shield time [us]."""
+    states: list
+    """Per step: (pos_w, vel_w, R_wb, command, depth) copies, for replaying the shield in the benchmark."""
+
+
+def fly(
+    kind: str,
+    speeds: list[float],
+    shielded: bool,
+    duration: float = 4.0,
+    shield_cfg: ShieldConfig | None = None,
+    record_states: bool = False,
+) -> FlightLog:
+    """Fly one vehicle per speed straight at the obstacle from 12 m away, starting at that speed, 1.5 m high."""
+    vcfg = VehicleConfig()
+    cam_cfg = CameraConfig()
+    prims, dist = obstacle(kind)
+    world = "".join(p.to_mjcf() for p in prims)
+    n = len(speeds)
+    veh = Vehicles(n, vcfg, world_xml=world)
+    speed = np.asarray(speeds, dtype=float)
+    start = np.tile([0.0, 0.0, 1.5], (n, 1))
+    veh.reset(np.arange(n), start, vel_w=np.stack((speed, np.zeros(n), np.zeros(n)), axis=1))
+    goal = np.tile([OBSTACLE_X + 20.0, 0.0, 1.5], (n, 1))
+    camera = DepthCamera(cam_cfg, [prims])
+    shield = HOCBFShield(shield_cfg, cam_cfg) if shielded else None
+    steps = int(round(duration / vcfg.command_dt))
+    pos = np.zeros((steps, n, 3))
+    d = np.zeros((steps, n))
+    active = np.zeros((steps, n), dtype=bool)
+    solve_us = np.zeros((steps, n))
+    total_us = np.zeros((steps, n))
+    done = np.zeros(n, dtype=bool)
+    states = []
+    for k in range(steps):
+        cmd = goal_seeking_command(veh.pos_w, veh.vel_w, goal, speed, vcfg)
+        if shield is not None:
+            r_wb = veh.R_wb
+            depth = camera.render(veh.pos_w, r_wb)
+            if record_states:
+                states.append((veh.pos_w.copy(), veh.vel_w.copy(), r_wb, cmd.copy(), depth))
+            out = shield.filter(cmd, veh.pos_w, veh.vel_w, depth=depth, R_wb=r_wb)
+            cmd = out.command
+            active[k], solve_us[k], total_us[k] = out.active, out.solve_us, out.total_us
+        # Vehicles that crashed are frozen (their command is a hover) so the log shows the crash point.
+        cmd[done] = np.array([vcfg.gravity, 0.0, 0.0, 0.0])
+        veh.step(cmd)
+        done |= veh.collided_buf
+        pos[k] = veh.pos_w
+        d[k] = dist(veh.pos_w)
+    t = np.arange(1, steps + 1) * vcfg.command_dt
+    return FlightLog(t, pos, d, veh.collided_buf.copy(), d.min(axis=0), active, solve_us, total_us, states)

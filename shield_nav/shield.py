@@ -1,0 +1,414 @@
+"""The HOCBF safety shield: a real-time QP that projects each command onto a safe set built from the depth cloud.
+
+Paper, "HOCBF-based Correction Loop". For the vehicle at position p with velocity v and an obstacle point o,
+with r = p - o (from the obstacle point to the vehicle; derivation in docs/shield.md):
+
+    B    = |r|^2 - r_safe^2
+    Bdot = 2 r.v                      (o is static, so rdot = v)
+    Bddot = 2 |v|^2 + 2 r.a
+    HOCBF: Bddot + alpha1 Bdot + alpha0 B >= 0   <=>   2 r^T a >= -2|v|^2 - alpha1 Bdot - alpha0 B
+
+The QP (paper's eq.) is a* = argmin 1/2 |a - a_raw|^2 subject to those rows for the K selected points and to a
+polyhedral inner approximation of what the vehicle can fly (thrust range, tilt limit). The acceleration model is
+a = f_n R(phi, theta, psi) e3 - g e3 (drag neglected). After the QP, a* is turned back into (f_n, phi, theta)
+keeping the commanded yaw; a command that needs no correction is returned bit-for-bit unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba as nb
+import numpy as np
+import qpsolvers
+import scipy.sparse as sp
+
+from envs.camera import CameraConfig, depth_to_points
+from envs.config import require
+from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
+
+STATUS_INACTIVE = 0
+"""No selected constraint was violated by the raw command: returned unchanged, no QP solved."""
+STATUS_SOLVED = 1
+"""The hard-constrained QP was solved."""
+STATUS_RELAXED = 2
+"""The hard QP was infeasible; the slack-relaxed QP was solved (``slack`` > 0 reports by how much)."""
+STATUS_FALLBACK = 3
+"""Both QPs failed (solver error): a braking command within the actuator limits was returned."""
+STATUS_NAMES = {0: "inactive", 1: "solved", 2: "relaxed", 3: "fallback"}
+
+
+@dataclass
+class ShieldConfig:
+    """HOCBF shield parameters. Acceleration units are m/s^2, lengths m."""
+
+    alpha0: float = 4.0
+    """HOCBF coefficient on B [1/s^2]. With alpha0 = p1 p2 and alpha1 = p1 + p2 (Xiao & Belta's HOCBF with class-K
+    gains p1, p2) the defaults are p1 = p2 = 2 /s. Larger values allow later, harder corrections (less
+    conservative); smaller values brake earlier."""
+    alpha1: float = 4.0
+    """HOCBF coefficient on Bdot [1/s]."""
+    r_safe: float = 0.5
+    """Safety radius [m] around every obstacle point (vehicle collision radius 0.2 m plus margin)."""
+    max_constraints: int = 8
+    """K: obstacle constraints kept per step (the tightest sector minima, see ``select_constraints``)."""
+    azimuth_sectors: int = 12
+    """Azimuth bins of the direction from the vehicle to a point (world frame)."""
+    elevation_sectors: int = 3
+    """Elevation bins of that direction."""
+    voxel: float = 0.0
+    """If > 0, downsample the point cloud to this voxel edge [m] before selection (0: use every pixel)."""
+    solver: str = "daqp"
+    """qpsolvers backend (``daqp``, ``quadprog``, ``osqp``, ... any installed one)."""
+    slack_weight: float = 1.0e4
+    """Quadratic penalty on the relaxation slack when the hard QP is infeasible."""
+    tilt_faces: int = 8
+    """Faces of the polygonal (inscribed) tilt cone used as the actuator limit in the QP."""
+    gravity: float = 9.81
+    """Gravitational acceleration [m/s^2] of the acceleration model."""
+    thrust_range: tuple[float, float] = (1.0, 30.0)
+    """Flyable mass-normalised thrust [m/s^2]; matches the vehicle controller's clamp."""
+    max_tilt_deg: float = 50.0
+    """Flyable tilt [deg]; matches the vehicle controller's clamp."""
+    point_filter: list[float] = field(default_factory=lambda: [0.0, 10.0])
+    """Only points at distances in [min, max] metres from the vehicle are considered."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Reject bad values, naming the key."""
+        require(self.alpha0 > 0, f"{prefix}alpha0", f"must be > 0, got {self.alpha0}")
+        require(self.alpha1 > 0, f"{prefix}alpha1", f"must be > 0, got {self.alpha1}")
+        require(self.r_safe > 0, f"{prefix}r_safe", f"must be > 0, got {self.r_safe}")
+        require(self.max_constraints >= 1, f"{prefix}max_constraints", "must be >= 1")
+        require(self.azimuth_sectors >= 1 and self.elevation_sectors >= 1, f"{prefix}azimuth_sectors", "must be >= 1")
+        require(self.voxel >= 0, f"{prefix}voxel", "must be >= 0")
+        require(
+            self.solver in qpsolvers.available_solvers,
+            f"{prefix}solver",
+            f"{self.solver!r} is not an installed qpsolvers backend; installed: {qpsolvers.available_solvers}",
+        )
+        require(self.slack_weight > 0, f"{prefix}slack_weight", "must be > 0")
+        require(self.tilt_faces >= 3, f"{prefix}tilt_faces", "must be >= 3")
+        lo, hi = self.thrust_range
+        require(0 < lo < hi, f"{prefix}thrust_range", f"must satisfy 0 < min < max, got {self.thrust_range}")
+        require(0 < self.max_tilt_deg < 90, f"{prefix}max_tilt_deg", "must be in (0, 90)")
+        require(
+            len(self.point_filter) == 2 and 0 <= self.point_filter[0] < self.point_filter[1],
+            f"{prefix}point_filter",
+            f"must be [min, max] with 0 <= min < max, got {self.point_filter}",
+        )
+
+
+# --------------------------------------------------------------------------------------------- acceleration model
+def accel_from_command(command: np.ndarray, gravity: float = 9.81) -> np.ndarray:
+    """World-frame acceleration of commands (N, 4) = [f_n, phi, theta, psi]: a = f_n R e3 - g e3. Returns (N, 3)."""
+    cmd = np.atleast_2d(command)
+    z_b = euler_zyx_to_rot(cmd[:, 1], cmd[:, 2], cmd[:, 3])[:, :, 2]
+    a = cmd[:, :1] * z_b
+    a[:, 2] -= gravity
+    return a
+
+
+def command_from_accel(accel: np.ndarray, psi: np.ndarray, gravity: float = 9.81) -> np.ndarray:
+    """Inverse of :func:`accel_from_command` for a given yaw: T = a + g e3, f_n = |T|, body z = T / |T|.
+
+    Roll and pitch follow from the attitude with that thrust axis and heading psi (PX4's bodyzToAttitude).
+    Returns (N, 4) = [f_n, phi, theta, psi] with psi unchanged.
+    """
+    a = np.atleast_2d(accel)
+    psi = np.atleast_1d(psi)
+    t = a + np.array([0.0, 0.0, gravity])
+    f_n = np.linalg.norm(t, axis=1)
+    z_d = t / np.maximum(f_n, 1e-12)[:, None]
+    euler = rot_to_euler_zyx(attitude_from_thrust_axis(z_d, psi))
+    return np.concatenate((f_n[:, None], euler[:, :2], psi[:, None]), axis=1)
+
+
+@nb.njit(cache=True, nogil=True)
+def _command_from_accel_1(ax: float, ay: float, az: float, psi: float, g: float) -> tuple[float, float, float]:
+    """Scalar :func:`command_from_accel` for one vehicle: returns (f_n, phi, theta)."""
+    tx, ty, tz = ax, ay, az + g
+    f = math.sqrt(tx * tx + ty * ty + tz * tz)
+    zx, zy, zz = tx / f, ty / f, tz / f
+    # x_b = normalize(y_c x z) with y_c = (-sin psi, cos psi, 0); y_b = z x x_b.
+    yx, yy = -math.sin(psi), math.cos(psi)
+    xx, xy, xz = yy * zz, -yx * zz, yx * zy - yy * zx
+    n = math.sqrt(xx * xx + xy * xy + xz * xz)
+    xx, xy, xz = xx / n, xy / n, xz / n
+    ybz = zx * xy - zy * xx
+    phi = math.atan2(ybz, zz)  # atan2(R21, R22)
+    theta = -math.asin(min(1.0, max(-1.0, xz)))  # -asin(R20)
+    return f, phi, theta
+
+
+def hocbf_rows(
+    r: np.ndarray, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """HOCBF constraint rows A a >= b for offsets r (K, 3) = p - o and velocity v (3,).
+
+    A = 2 r^T,  b = -2|v|^2 - alpha1 Bdot - alpha0 B  with  B = |r|^2 - r_safe^2,  Bdot = 2 r.v.
+    """
+    b_val = np.sum(r * r, axis=1) - r_safe**2
+    b_dot = 2.0 * r @ v
+    return 2.0 * r, -2.0 * float(v @ v) - alpha1 * b_dot - alpha0 * b_val
+
+
+# --------------------------------------------------------------------------------------------- constraint selection
+@nb.njit(cache=True, nogil=True)
+def _select(
+    points: np.ndarray,
+    p: np.ndarray,
+    v: np.ndarray,
+    a_raw: np.ndarray,
+    alpha0: float,
+    alpha1: float,
+    r_safe: float,
+    d_min: float,
+    d_max: float,
+    n_az: int,
+    n_el: int,
+    k_max: int,
+    out_r: np.ndarray,
+) -> int:
+    """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
+
+    For each point o: r = p - o, margin m = 2 r.a_raw + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2),
+    i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). Points are binned by
+    the azimuth/elevation of o - p; each bin keeps its smallest margin, and the k_max smallest bins are written to
+    out_r (k_max, 3) in increasing margin order. Returns how many were written.
+    """
+    n_sec = n_az * n_el
+    best_m = np.full(n_sec, np.inf)
+    best_i = np.full(n_sec, -1)
+    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    two_pi = 2.0 * math.pi
+    for i in range(points.shape[0]):
+        rx = p[0] - points[i, 0]
+        ry = p[1] - points[i, 1]
+        rz = p[2] - points[i, 2]
+        d2 = rx * rx + ry * ry + rz * rz
+        if d2 < d_min * d_min or d2 > d_max * d_max:
+            continue
+        m = (
+            2.0 * (rx * a_raw[0] + ry * a_raw[1] + rz * a_raw[2])
+            + 2.0 * vv
+            + alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
+            + alpha0 * (d2 - r_safe * r_safe)
+        )
+        d = math.sqrt(d2)
+        az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
+        el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]
+        ia = min(int(az / two_pi * n_az), n_az - 1)
+        ie = min(int(el / math.pi * n_el), n_el - 1)
+        s = ie * n_az + ia
+        if m < best_m[s]:
+            best_m[s] = m
+            best_i[s] = i
+    order = np.argsort(best_m)
+    n = 0
+    for j in range(min(k_max, n_sec)):
+        s = order[j]
+        if best_i[s] < 0:
+            break
+        i = best_i[s]
+        out_r[n, 0] = p[0] - points[i, 0]
+        out_r[n, 1] = p[1] - points[i, 1]
+        out_r[n, 2] = p[2] - points[i, 2]
+        n += 1
+    return n
+
+
+# --------------------------------------------------------------------------------------------- the shield
+@dataclass
+class ShieldOutput:
+    """Result of one batched shield call. Every array has a leading N."""
+
+    command: np.ndarray
+    """Corrected commands (N, 4) = [f_n, phi, theta, psi]; bit-identical to the input where inactive."""
+    accel_raw: np.ndarray
+    """Acceleration of the raw command (N, 3) [m/s^2]."""
+    accel_safe: np.ndarray
+    """Acceleration after the QP (N, 3) [m/s^2]."""
+    active: np.ndarray
+    """(N,) bool: the shield changed the command."""
+    status: np.ndarray
+    """(N,) int: one of STATUS_* (inactive, solved, relaxed, fallback)."""
+    num_constraints: np.ndarray
+    """(N,) int: obstacle constraints in the QP."""
+    slack: np.ndarray
+    """(N,) float: relaxation slack used (0 unless relaxed)."""
+    solve_us: np.ndarray
+    """(N,) float: time spent in the QP solver calls [us] (0 when inactive)."""
+    total_us: np.ndarray
+    """(N,) float: whole per-vehicle shield time [us]: point cloud, selection, QP, conversion back."""
+
+
+class HOCBFShield:
+    """Batched HOCBF safety filter. See the module docstring for the math and docs/shield.md for the derivation.
+
+    Args:
+        cfg: shield parameters.
+        camera: the depth camera's configuration (to back-project depth images to world points).
+    """
+
+    def __init__(self, cfg: ShieldConfig | None = None, camera: CameraConfig | None = None) -> None:  # noqa: D107
+        self.cfg = cfg = cfg if cfg is not None else ShieldConfig()
+        cfg.validate()
+        self.camera = camera if camera is not None else CameraConfig()
+        self._r_buf = np.zeros((cfg.max_constraints, 3))
+        self._g = np.array([0.0, 0.0, cfg.gravity])
+        # Actuator limits on T = a + g e3, written as G_act a <= h_act:
+        #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
+        #   thrust: T_z >= f_min (a subset of |T| >= f_min), and |T| <= f_max through the inscribed facets
+        #   d_j . T <= f_max cos(delta), with d_j covering the tilt cone (delta: worst angle to the nearest d_j).
+        tan_t = math.tan(math.radians(cfg.max_tilt_deg)) * math.cos(math.pi / cfg.tilt_faces)
+        rows, rhs = [], []
+        for k in range(cfg.tilt_faces):
+            ang = 2 * math.pi * (k + 0.5) / cfg.tilt_faces
+            n = np.array([math.cos(ang), math.sin(ang), -tan_t])
+            rows.append(n)
+            rhs.append(-(n @ self._g))  # n . (a + g e3) <= 0
+        rows.append(np.array([0.0, 0.0, -1.0]))
+        rhs.append(cfg.gravity - cfg.thrust_range[0])  # -(a_z + g) <= -f_min
+        dirs = self._cap_directions(math.radians(cfg.max_tilt_deg))
+        delta = self._coverage(dirs, math.radians(cfg.max_tilt_deg))
+        for d in dirs:
+            rows.append(d)
+            rhs.append(cfg.thrust_range[1] * math.cos(delta) - d @ self._g)
+        self._g_act = np.array(rows)
+        self._h_act = np.array(rhs)
+        self.thrust_cap_scale = math.cos(delta)
+        """Fraction of f_max reachable in the worst direction under the inscribed thrust facets."""
+        self._sparse = cfg.solver in ("osqp", "scs", "clarabel")
+
+    @staticmethod
+    def _cap_directions(max_tilt: float) -> np.ndarray:
+        """Unit directions covering the cone of tilts <= max_tilt: the vertical plus rings of 8 at 1/3 and 2/3."""
+        out = [np.array([0.0, 0.0, 1.0])]
+        for frac, count in ((1.0 / 3.0, 6), (2.0 / 3.0, 10), (1.0, 14)):
+            tilt = frac * max_tilt
+            for k in range(count):
+                az = 2 * math.pi * k / count
+                out.append(np.array([math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), math.cos(tilt)]))
+        return np.array(out)
+
+    @staticmethod
+    def _coverage(dirs: np.ndarray, max_tilt: float) -> float:
+        """Largest angle from any direction in the tilt cone to its nearest d_j (dense sampling, plus 10 %)."""
+        tilt, az = np.meshgrid(np.linspace(0, max_tilt, 60), np.linspace(0, 2 * math.pi, 241))
+        u = np.stack((np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)), axis=-1).reshape(-1, 3)
+        worst = np.arccos(np.clip((u @ dirs.T).max(axis=1), -1, 1)).max()
+        return float(min(1.1 * worst, math.radians(30.0)))
+
+    # ------------------------------------------------------------------------------ single vehicle
+    def constraints(
+        self, points_w: np.ndarray, pos_w: np.ndarray, vel_w: np.ndarray, accel_raw: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Select up to K points and return (r (k, 3), A (k, 3), b (k,)) with rows A a >= b."""
+        c = self.cfg
+        pts = np.ascontiguousarray(points_w, dtype=np.float64).reshape(-1, 3)
+        n = _select(
+            pts, np.asarray(pos_w, dtype=np.float64), np.asarray(vel_w, dtype=np.float64),
+            np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
+            c.point_filter[1], c.azimuth_sectors, c.elevation_sectors, c.max_constraints, self._r_buf,
+        )  # fmt: skip
+        r = self._r_buf[:n].copy()
+        a_mat, b_vec = hocbf_rows(r, np.asarray(vel_w, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe)
+        return r, a_mat, b_vec
+
+    def solve(
+        self, accel_raw: np.ndarray, a_mat: np.ndarray, b_vec: np.ndarray, vel_w: np.ndarray
+    ) -> tuple[np.ndarray, int, float, float]:
+        """Project accel_raw (3,) onto {A a >= b} intersected with the actuator polytope.
+
+        Returns (a*, status, slack, solver_us). ``status`` is STATUS_SOLVED, STATUS_RELAXED or STATUS_FALLBACK.
+        """
+        c = self.cfg
+        g_mat = np.vstack((-a_mat, self._g_act))
+        h_vec = np.concatenate((-b_vec, self._h_act))
+        t0 = time.perf_counter()
+        x = self._qp(np.eye(3), -accel_raw, g_mat, h_vec)
+        if x is not None and np.all(np.isfinite(x)):
+            return x, STATUS_SOLVED, 0.0, 1e6 * (time.perf_counter() - t0)
+        # Relaxed: variables [a, s]; obstacle rows A a + s >= b, s >= 0; cost 1/2|a - a_raw|^2 + w/2 s^2.
+        k = len(b_vec)
+        p4 = np.diag([1.0, 1.0, 1.0, c.slack_weight])
+        q4 = np.concatenate((-accel_raw, [0.0]))
+        g4 = np.zeros((k + len(self._h_act) + 1, 4))
+        g4[:k, :3] = -a_mat
+        g4[:k, 3] = -1.0
+        g4[k : k + len(self._h_act), :3] = self._g_act
+        g4[-1, 3] = -1.0
+        h4 = np.concatenate((-b_vec, self._h_act, [0.0]))
+        x = self._qp(p4, q4, g4, h4)
+        us = 1e6 * (time.perf_counter() - t0)
+        if x is not None and np.all(np.isfinite(x)):
+            return x[:3], STATUS_RELAXED, float(max(x[3], 0.0)), us
+        # Fallback: brake along -v at the largest decelaration the tilt limit allows, hold altitude.
+        return self._brake(vel_w), STATUS_FALLBACK, math.inf, us
+
+    def _qp(self, p: np.ndarray, q: np.ndarray, g: np.ndarray, h: np.ndarray) -> np.ndarray | None:
+        if self._sparse:
+            p, g = sp.csc_matrix(p), sp.csc_matrix(g)
+        try:
+            return qpsolvers.solve_qp(p, q, g, h, solver=self.cfg.solver)
+        except Exception:  # a solver error must never abort a flight: the caller falls back
+            return None
+
+    def _brake(self, vel_w: np.ndarray) -> np.ndarray:
+        """A flyable braking acceleration: a = -2 v, horizontally <= 0.8 g tan(max_tilt), vertically <= g/2."""
+        a = -2.0 * np.asarray(vel_w, dtype=np.float64)
+        cap = 0.8 * self.cfg.gravity * math.tan(math.radians(self.cfg.max_tilt_deg))
+        h = math.hypot(a[0], a[1])
+        if h > cap:
+            a[:2] *= cap / h
+        a[2] = min(max(a[2], -0.5 * self.cfg.gravity), 0.5 * self.cfg.gravity)
+        return a
+
+    # ------------------------------------------------------------------------------ batched
+    def filter(
+        self,
+        command: np.ndarray,
+        pos_w: np.ndarray,
+        vel_w: np.ndarray,
+        depth: np.ndarray | None = None,
+        R_wb: np.ndarray | None = None,  # noqa: N803
+        points_w: list[np.ndarray] | None = None,
+    ) -> ShieldOutput:
+        """Filter N commands (N, 4). Obstacles come from depth images (N, 1, H, W) with body poses, or point lists.
+
+        Vehicle state: ``pos_w`` (N, 3), ``vel_w`` (N, 3). For depth input, ``R_wb`` (N, 3, 3) is the body
+        attitude when the image was taken (the camera mount comes from the camera config).
+        """
+        cmd = np.atleast_2d(np.asarray(command, dtype=np.float64))
+        num = len(cmd)
+        if (depth is None) == (points_w is None):
+            raise ValueError("give exactly one of depth (with R_wb) or points_w")
+        if not np.all(np.isfinite(cmd)):
+            bad = np.flatnonzero(~np.isfinite(cmd).all(axis=1)).tolist()
+            raise ValueError(f"non-finite command for vehicle index(es) {bad}")
+        out_cmd = cmd.copy()
+        a_raw = accel_from_command(cmd, self.cfg.gravity)
+        a_safe = a_raw.copy()
+        active = np.zeros(num, dtype=bool)
+        status = np.zeros(num, dtype=np.int64)
+        ncon = np.zeros(num, dtype=np.int64)
+        slack = np.zeros(num)
+        solve_us = np.zeros(num)
+        total_us = np.zeros(num)
+        for i in range(num):
+            t0 = time.perf_counter()
+            if depth is not None:
+                pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel or None)
+            else:
+                pts = points_w[i]
+            _, a_mat, b_vec = self.constraints(pts, pos_w[i], vel_w[i], a_raw[i])
+            ncon[i] = len(b_vec)
+            if len(b_vec) and np.any(a_mat @ a_raw[i] < b_vec):
+                a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
+                a_safe[i] = a_star
+                out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], cmd[i, 3], self.cfg.gravity)
+                active[i] = True
+            total_us[i] = 1e6 * (time.perf_counter() - t0)
+        return ShieldOutput(out_cmd, a_raw, a_safe, active, status, ncon, slack, solve_us, total_us)

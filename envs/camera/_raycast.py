@@ -414,3 +414,39 @@ def render_batch(
         for v in range(H):
             for u in range(W):
                 out[i, v, u] = min(max(zb[v, u], zmin_clip), zmax_clip)
+
+
+@nb.njit(**_NJIT)
+def render_batch_serial(
+    origins: np.ndarray,
+    R_wc: np.ndarray,
+    scene_ids: np.ndarray,
+    offsets: np.ndarray,
+    kinds: np.ndarray,
+    params: np.ndarray,
+    bsph: np.ndarray,
+    x_u: np.ndarray,
+    y_v: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    zmin_clip: float,
+    zmax_clip: float,
+    out: np.ndarray,
+) -> None:
+    """``render_batch`` on the calling thread, for a few cameras (e.g. the shield's single image).
+
+    Waking the thread pool costs more than it saves there, badly so when other processes load the cores.
+    """
+    N, H, W = out.shape
+    zb = np.empty((H, W))
+    for i in range(N):
+        sid = scene_ids[i]
+        _render_camera(
+            origins[i], R_wc[i], kinds, params, bsph, offsets[sid], offsets[sid + 1],
+            x_u, y_v, fx, fy, cx, cy, zmax_clip, zb,
+        )  # fmt: skip
+        for v in range(H):
+            for u in range(W):
+                out[i, v, u] = min(max(zb[v, u], zmin_clip), zmax_clip)

@@ -13,6 +13,9 @@ from envs.camera.model import camera_poses, intrinsics, ray_grid
 from envs.scenes.primitives import Box, Capsule, Cylinder, Sphere
 from envs.scenes.scene import SLAB_THICKNESS
 
+SERIAL_BELOW = 4
+"""Batches smaller than this render on the calling thread (no thread-pool wake-up)."""
+
 SceneLike = Any
 """A ``envs.scenes.Scene`` or a sequence of primitives (``Sphere``, ``Cylinder``, ``Capsule``, ``Box``)."""
 
@@ -171,7 +174,8 @@ class DepthCamera:
         o_w, R_wc = camera_poses(self.cfg, pos_w, R_wb)
         out = np.empty((n, self.cfg.height, self.cfg.width), dtype=np.float32)
         fx, fy, cx, cy = self._intr
-        rc.render_batch(
+        kernel = rc.render_batch if n >= SERIAL_BELOW else rc.render_batch_serial
+        kernel(
             o_w, np.ascontiguousarray(R_wc), sid, self._offsets, self._kinds, self._params, self._bsph,
             self._x_u, self._y_v, fx, fy, cx, cy, float(self.cfg.min_range), float(self.cfg.max_range), out,
         )  # fmt: skip

@@ -1,0 +1,199 @@
+"""The HOCBF shield: math against hand-computed values, QP properties, and scripted flights on the real simulator."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from envs.camera import CameraConfig, DepthCamera
+from envs.config import ConfigError, load_config
+from envs.scenes.primitives import Box
+from shield_nav.scripted import fly
+from shield_nav.shield import (
+    STATUS_RELAXED,
+    STATUS_SOLVED,
+    HOCBFShield,
+    ShieldConfig,
+    accel_from_command,
+    command_from_accel,
+    hocbf_rows,
+)
+
+G = 9.81
+
+
+def test_hocbf_row_hand_computed():
+    # Vehicle at the origin moving +x at 3 m/s, obstacle point 2 m ahead. r = p - o = (-2, 0, 0).
+    # B = 4 - 0.25 = 3.75;  Bdot = 2 r.v = -12;  A = 2 r = (-4, 0, 0);
+    # b = -2|v|^2 - a1 Bdot - a0 B = -18 + 48 - 15 = 15.  So -4 a_x >= 15: brake at >= 3.75 m/s^2.
+    a_mat, b_vec = hocbf_rows(np.array([[-2.0, 0.0, 0.0]]), np.array([3.0, 0.0, 0.0]), 4.0, 4.0, 0.5)
+    np.testing.assert_allclose(a_mat, [[-4.0, 0.0, 0.0]])
+    np.testing.assert_allclose(b_vec, [15.0])
+
+
+def test_sign_convention_matches_the_time_derivatives():
+    # The paper's Bdot = 2 r.v and Bddot = 2|v|^2 + 2 r.a hold for r = p - o (obstacle -> vehicle).
+    # Check against finite differences of B(t) = |p(t) - o|^2 - r_safe^2 along p(t) = p0 + v0 t + a t^2 / 2.
+    p0, v0, acc, o, rs = np.array([0.3, -1.0, 1.2]), np.array([4.0, 1.0, -0.5]), np.array([-2.0, 3.0, 0.7]), \
+        np.array([5.0, 0.5, 1.0]), 0.5
+
+    def b_of(t: float) -> float:
+        p = p0 + v0 * t + 0.5 * acc * t * t
+        return float(np.sum((p - o) ** 2) - rs**2)
+
+    h = 1e-4
+    b_dot_fd = (b_of(h) - b_of(-h)) / (2 * h)
+    b_ddot_fd = (b_of(h) - 2 * b_of(0.0) + b_of(-h)) / h**2
+    r = p0 - o
+    assert b_dot_fd == pytest.approx(2 * r @ v0, rel=1e-6)
+    assert b_ddot_fd == pytest.approx(2 * v0 @ v0 + 2 * r @ acc, rel=1e-5)
+    # With the paper's wording (r = o - p) the first derivative would have the opposite sign.
+    assert b_dot_fd == pytest.approx(-2 * (o - p0) @ v0, rel=1e-6)
+    # And the shield's rows are exactly HOCBF(B) >= 0 evaluated with r = p - o.
+    a_mat, b_vec = hocbf_rows(r[None], v0, 3.0, 2.0, rs)
+    lhs = b_ddot_fd + 2.0 * b_dot_fd + 3.0 * b_of(0.0)
+    assert a_mat[0] @ acc - b_vec[0] == pytest.approx(lhs, rel=1e-5)
+
+
+def test_accel_command_round_trip_is_identity():
+    rng = np.random.default_rng(0)
+    cmd = np.stack(
+        (rng.uniform(5, 25, 50), rng.uniform(-0.6, 0.6, 50), rng.uniform(-0.6, 0.6, 50), rng.uniform(-3, 3, 50)), 1
+    )
+    a = accel_from_command(cmd)
+    # Hover is a = 0; a level 0.3 rad pitch at f_n = g / cos(0.3) is a = (g tan 0.3, 0, 0).
+    np.testing.assert_allclose(accel_from_command(np.array([[G, 0, 0, 1.0]])), [[0, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(
+        accel_from_command(np.array([[G / math.cos(0.3), 0, 0.3, 0]])), [[G * math.tan(0.3), 0, 0]], atol=1e-12
+    )
+    np.testing.assert_allclose(command_from_accel(a, cmd[:, 3]), cmd, atol=1e-10)
+
+
+def test_single_active_constraint_is_the_closed_form_half_space_projection():
+    shield = HOCBFShield()
+    a_raw = np.array([3.0, 0.5, 0.0])
+    a_mat, b_vec = hocbf_rows(np.array([[-2.0, 0.0, 0.0]]), np.array([3.0, 0.0, 0.0]), 4.0, 4.0, 0.5)
+    a_star, status, slack, _ = shield.solve(a_raw, a_mat, b_vec, np.zeros(3))
+    # Projection onto {A a >= b}: a* = a_raw + (b - A a_raw) / |A|^2 A^T  ->  a_x = -3.75, a_y, a_z unchanged.
+    expected = a_raw + (b_vec[0] - a_mat[0] @ a_raw) / (a_mat[0] @ a_mat[0]) * a_mat[0]
+    np.testing.assert_allclose(expected, [-3.75, 0.5, 0.0])
+    assert status == STATUS_SOLVED and slack == 0.0
+    np.testing.assert_allclose(a_star, expected, atol=1e-9)
+
+
+def test_safe_command_is_returned_bit_exact():
+    shield = HOCBFShield()
+    cmd = np.array([[G / math.cos(0.2), 0.05, 0.2, 0.3]])
+    # One point 8 m ahead, vehicle at 2 m/s: every HOCBF row is satisfied with a wide margin.
+    out = shield.filter(cmd, np.array([[0.0, 0.0, 1.5]]), np.array([[2.0, 0.0, 0.0]]), points_w=[np.array([[8.0, 0, 1.5]])])
+    assert not out.active[0] and out.status[0] == 0 and out.num_constraints[0] == 1
+    assert np.array_equal(out.command, cmd)
+
+
+def test_unsafe_command_is_corrected_to_satisfy_every_selected_row():
+    shield = HOCBFShield()
+    cmd = np.array([[G / math.cos(0.3), 0.0, 0.3, 0.0]])  # accelerating towards a wall 2 m ahead at 6 m/s
+    ys, zs = np.meshgrid(np.linspace(-2, 2, 41), np.linspace(0, 3, 31))
+    wall = np.stack((np.full(ys.size, 2.0), ys.ravel(), zs.ravel()), 1)
+    pos, vel = np.array([[0.0, 0.0, 1.5]]), np.array([[6.0, 0.0, 0.0]])
+    out = shield.filter(cmd, pos, vel, points_w=[wall])
+    assert out.active[0] and out.status[0] in (STATUS_SOLVED, STATUS_RELAXED)
+    _, a_mat, b_vec = shield.constraints(wall, pos[0], vel[0], out.accel_raw[0])
+    if out.status[0] == STATUS_SOLVED:
+        assert np.all(a_mat @ out.accel_safe[0] >= b_vec - 1e-6)
+    assert out.accel_safe[0, 0] < 0.0  # it brakes
+    # The corrected command is what the vehicle flies: accel_from_command(command) reproduces a*.
+    np.testing.assert_allclose(accel_from_command(out.command), out.accel_safe, atol=1e-9)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(1, 8),
+    st.integers(0, 2**31 - 1),
+)
+def test_property_feasible_solutions_satisfy_all_constraints(k, seed):
+    rng = np.random.default_rng(seed)
+    shield = HOCBFShield()
+    r = rng.normal(size=(k, 3)) * rng.uniform(0.3, 4.0)
+    v = rng.normal(size=3) * 4.0
+    a_raw = rng.normal(size=3) * 5.0
+    a_mat, b_vec = hocbf_rows(r, v, 4.0, 4.0, 0.5)
+    a_star, status, slack, _ = shield.solve(a_raw, a_mat, b_vec, v)
+    assert np.all(np.isfinite(a_star))
+    # Always flyable: inside the actuator polytope.
+    assert np.all(shield._g_act @ a_star <= shield._h_act + 1e-6)
+    if status == STATUS_SOLVED:
+        assert np.all(a_mat @ a_star >= b_vec - 1e-6 * (1 + np.abs(b_vec)))
+        # Optimality against a projection that ignores the obstacle rows: never closer than a_raw's projection.
+    else:
+        assert status == STATUS_RELAXED and slack > 0.0
+        assert np.all(a_mat @ a_star + slack >= b_vec - 1e-4 * (1 + np.abs(b_vec)))
+
+
+def test_infeasible_instance_returns_relaxed_solution_with_slack():
+    shield = HOCBFShield()
+    # Hovering between two points 0.3 m either side (inside r_safe = 0.5): B = 0.09 - 0.25 = -0.16, Bdot = 0, so
+    # each row asks 0.6 a_x >= 0.64 and -0.6 a_x >= 0.64: a_x >= 1.067 and a_x <= -1.067 -- infeasible.
+    r = np.array([[0.3, 0.0, 0.0], [-0.3, 0.0, 0.0]])
+    a_mat, b_vec = hocbf_rows(r, np.zeros(3), 4.0, 4.0, 0.5)
+    np.testing.assert_allclose(b_vec, [0.64, 0.64])
+    a_star, status, slack, _ = shield.solve(np.zeros(3), a_mat, b_vec, np.zeros(3))
+    assert status == STATUS_RELAXED
+    # By symmetry a_x = 0 and both rows need the same slack 0.64 (up to the 1e4 penalty's tiny give).
+    assert a_star[0] == pytest.approx(0.0, abs=1e-6)
+    assert slack == pytest.approx(0.64, rel=1e-3)
+    assert np.all(shield._g_act @ a_star <= shield._h_act + 1e-6)
+
+
+@pytest.mark.parametrize("solver", ["osqp", "quadprog"])
+def test_other_backends_agree_with_daqp(solver):
+    rng = np.random.default_rng(5)
+    fast, other = HOCBFShield(), HOCBFShield(ShieldConfig(solver=solver))
+    for _ in range(10):
+        r = rng.normal(size=(6, 3)) * 2.0
+        v, a_raw = rng.normal(size=3) * 3.0, rng.normal(size=3) * 4.0
+        a_mat, b_vec = hocbf_rows(r, v, 4.0, 4.0, 0.5)
+        x1, s1, *_ = fast.solve(a_raw, a_mat, b_vec, v)
+        x2, s2, *_ = other.solve(a_raw, a_mat, b_vec, v)
+        assert s1 == s2
+        np.testing.assert_allclose(x1, x2, atol=1e-4 if solver == "osqp" else 1e-7)
+
+
+def test_depth_input_selects_points_on_the_wall():
+    cam = CameraConfig()
+    wall = Box((5.1, 0.0, 1.5), (0.1, 4.0, 1.5))
+    depth = DepthCamera(cam, [[wall]]).render(np.array([[0.0, 0.0, 1.5]]), np.eye(3)[None])
+    shield = HOCBFShield(camera=cam)
+    out = shield.filter(np.array([[G, 0, 0, 0]]), np.array([[0.0, 0.0, 1.5]]), np.array([[3.0, 0, 0]]), depth=depth,
+                        R_wb=np.eye(3)[None])  # fmt: skip
+    from envs.camera import depth_to_points
+
+    pts = depth_to_points(depth[0], np.array([0.0, 0.0, 1.5]), np.eye(3), cam)
+    r, _, _ = shield.constraints(pts, np.array([0.0, 0.0, 1.5]), np.array([3.0, 0, 0]), np.zeros(3))
+    assert out.num_constraints[0] == len(r) >= 1
+    np.testing.assert_allclose(-r[:, 0], 5.0, atol=1e-6)  # every selected point lies on the face x = 5
+
+
+def test_config_errors_name_the_key():
+    with pytest.raises(ConfigError, match="solver"):
+        load_config(ShieldConfig, overrides=["solver=nope"])
+    with pytest.raises(ConfigError, match="alpha0"):
+        load_config(ShieldConfig, overrides=["alpha0=-1"])
+    with pytest.raises(ValueError, match=r"index\(es\) \[1\]"):
+        HOCBFShield().filter(np.array([[G, 0, 0, 0], [np.nan, 0, 0, 0]]), np.zeros((2, 3)), np.zeros((2, 3)),
+                             points_w=[np.zeros((0, 3))] * 2)  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["pole", "wall"])
+def test_scripted_flights_shield_prevents_collisions(kind):
+    speeds = [3.0, 5.0, 7.0, 9.0]
+    bare = fly(kind, speeds, shielded=False, duration=4.5)
+    assert bare.collided.all()  # the naive controller crashes at every speed
+    safe = fly(kind, speeds, shielded=True, duration=4.5)
+    assert not safe.collided.any()
+    # Measured minimum distances to the surface (centre of the 0.2 m vehicle sphere), pole/wall:
+    # 3 m/s 1.78/1.78, 5 m/s 1.04/1.11, 7 m/s 0.89/0.96, 9 m/s 0.73/0.82. Assert a 0.5 m floor.
+    assert np.all(safe.min_distance > 0.5)
+    assert safe.active.any(axis=0).all()

@@ -11,6 +11,7 @@ from envs.camera.config import CameraConfig
 from envs.camera.model import R_bc, ray_grid
 
 _NJIT = {"cache": True, "fastmath": False, "nogil": True}
+_FIB = -7046029254386353131  # 0x9E3779B97F4A7C15 as a signed int64
 _GRID_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
@@ -59,32 +60,44 @@ def _backproject(
 
 @nb.njit(**_NJIT)
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Centroid of the points in each occupied cubic voxel of edge ``voxel`` (m), in first-seen order.
+    """Centroid of the points (M, 3) in each occupied cubic voxel of edge ``voxel`` (m), in first-seen order.
 
-    Voxel of a point: ``floor(p / voxel)`` per axis; an open-addressing hash table maps voxel -> slot.
+    Voxel of a point: ``floor(p / voxel)`` per axis, packed into one int64 key (21 bits per axis, so voxel
+    indices must lie within +-2^20: +-10 km at 1 cm voxels); an open-addressing hash table maps key -> slot.
     """
     n = points.shape[0]
-    size = 1
+    size, bits = 1, 0
     while size < 2 * n + 1:
         size *= 2
-    keys = np.empty((size, 3), dtype=np.int64)
+        bits += 1
+    keys = np.empty(size, dtype=np.int64)
     slot = np.full(size, -1, dtype=np.int64)
-    acc = np.zeros((n, 3))
-    cnt = np.zeros(n, dtype=np.int64)
+    acc = np.empty((n, 3))
+    cnt = np.empty(n, dtype=np.int64)
     m = 0
     inv = 1.0 / voxel
+    lim = 1 << 20
+    last_key, j = -1, 0
     for i in range(n):
         ix = int(math.floor(points[i, 0] * inv))
         iy = int(math.floor(points[i, 1] * inv))
         iz = int(math.floor(points[i, 2] * inv))
-        h = ((ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)) & (size - 1)
-        while slot[h] >= 0 and not (keys[h, 0] == ix and keys[h, 1] == iy and keys[h, 2] == iz):
-            h = (h + 1) & (size - 1)
-        if slot[h] < 0:
-            slot[h] = m
-            keys[h, 0], keys[h, 1], keys[h, 2] = ix, iy, iz
-            m += 1
-        j = slot[h]
+        if not (-lim <= ix < lim and -lim <= iy < lim and -lim <= iz < lim):
+            raise ValueError("voxel_downsample: voxel index beyond +-2^20 (points too far or voxel too small)")
+        key = ((ix + lim) << 42) | ((iy + lim) << 21) | (iz + lim)
+        if key != last_key:  # neighbouring pixels often share a voxel: skip the lookup
+            # Fibonacci hashing: top ``bits`` bits of key * 2^64 / golden ratio (int64 wrap-around intended).
+            h = ((key * _FIB) >> (64 - bits)) & (size - 1)
+            while slot[h] >= 0 and keys[h] != key:
+                h = (h + 1) & (size - 1)
+            if slot[h] < 0:
+                slot[h] = m
+                keys[h] = key
+                acc[m, 0], acc[m, 1], acc[m, 2] = 0.0, 0.0, 0.0
+                cnt[m] = 0
+                m += 1
+            j = slot[h]
+            last_key = key
         acc[j, 0] += points[i, 0]
         acc[j, 1] += points[i, 1]
         acc[j, 2] += points[i, 2]

@@ -169,7 +169,7 @@ class Placer:
         y = self.rng.uniform(self.y_range[0] + margin, self.y_range[1] - margin)
         return float(x), float(y)
 
-    def place(self, make: object, radius_hint: float, tries: int = 100) -> list[Primitive]:
+    def place(self, make: object, radius_hint: float, tries: int = 40) -> list[Primitive]:
         """Try up to ``tries`` random centres for ``make(x, y) -> (prims, footprint)``; [] if none fits."""
         for _ in range(tries):
             x, y = self.sample_xy(radius_hint)

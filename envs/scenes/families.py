@@ -72,7 +72,7 @@ def _clutter(
     n: int,
     z_lo: float,
     z_hi: float,
-    max_failures: int = 100,
+    max_failures: int = 30,
 ) -> list[Primitive]:
     """Place ``n`` obstacles whose kinds are drawn from ``weights`` (stops early if the scene saturates)."""
     kinds = list(weights)

@@ -28,7 +28,7 @@ import hashlib
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -70,16 +70,22 @@ def _region(name: str, value: Any) -> Region:
     return lo, hi
 
 
+def _region_z(lo: Vec3, hi: Vec3) -> tuple[float, float]:
+    """A 2 m tall z band centred in the bounds (the whole height if the bounds are lower than 2 m)."""
+    zc, half = 0.5 * (lo[2] + hi[2]), min(1.0, 0.5 * (hi[2] - lo[2]))
+    return zc - half, zc + half
+
+
 def default_start_region(lo: Vec3 = DEFAULT_BOUNDS_LO, hi: Vec3 = DEFAULT_BOUNDS_HI) -> Region:
     """The paper's 1 x W x 2 m start box at the start line (x in [lo, lo+1]), centred in height."""
-    zc = 0.5 * (lo[2] + hi[2])
-    return (lo[0], lo[1], zc - 1.0), (lo[0] + 1.0, hi[1], zc + 1.0)
+    z0, z1 = _region_z(lo, hi)
+    return (lo[0], lo[1], z0), (min(lo[0] + 1.0, hi[0]), hi[1], z1)
 
 
 def default_goal_region(lo: Vec3 = DEFAULT_BOUNDS_LO, hi: Vec3 = DEFAULT_BOUNDS_HI) -> Region:
     """The paper's 1 x W x 2 m goal box at the far end (x in [hi-1, hi]), centred in height."""
-    zc = 0.5 * (lo[2] + hi[2])
-    return (hi[0] - 1.0, lo[1], zc - 1.0), (hi[0], hi[1], zc + 1.0)
+    z0, z1 = _region_z(lo, hi)
+    return (max(hi[0] - 1.0, lo[0]), lo[1], z0), (hi[0], hi[1], z1)
 
 
 @dataclass(frozen=True)
@@ -136,8 +142,9 @@ class Scene:
     Attributes:
         bounds_lo: Lower corner of the flight volume (m).
         bounds_hi: Upper corner of the flight volume (m).
-        start_region: ``(lo, hi)`` box where episodes start.
-        goal_region: ``(lo, hi)`` box the geodesic field flows to.
+        start_region: ``(lo, hi)`` box where episodes start (None: the 1 m deep, full-width, 2 m tall box at
+            the ``bounds_lo.x`` end, centred in height).
+        goal_region: ``(lo, hi)`` box the geodesic field flows to (None: the same box at the ``bounds_hi.x`` end).
         primitives: Static obstacles; every primitive's bounding box lies inside the bounds.
         floor: Whether a floor slab sits under ``bounds_lo.z`` (a collision surface).
         ceiling: Whether a ceiling slab sits above ``bounds_hi.z`` (a collision surface).
@@ -149,8 +156,8 @@ class Scene:
 
     bounds_lo: Vec3 = DEFAULT_BOUNDS_LO
     bounds_hi: Vec3 = DEFAULT_BOUNDS_HI
-    start_region: Region = field(default_factory=default_start_region)
-    goal_region: Region = field(default_factory=default_goal_region)
+    start_region: Region | None = None
+    goal_region: Region | None = None
     primitives: tuple[Primitive, ...] = ()
     floor: bool = True
     ceiling: bool = False
@@ -163,6 +170,10 @@ class Scene:
         lo, hi = _region("bounds", (self.bounds_lo, self.bounds_hi))
         object.__setattr__(self, "bounds_lo", lo)
         object.__setattr__(self, "bounds_hi", hi)
+        if self.start_region is None:
+            object.__setattr__(self, "start_region", default_start_region(lo, hi))
+        if self.goal_region is None:
+            object.__setattr__(self, "goal_region", default_goal_region(lo, hi))
         for name in ("start_region", "goal_region"):
             r_lo, r_hi = _region(name, getattr(self, name))
             if any(r_lo[k] < lo[k] - BOUNDS_TOL or r_hi[k] > hi[k] + BOUNDS_TOL for k in range(3)):

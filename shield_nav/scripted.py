@@ -132,3 +132,44 @@ def fly(
         d[k] = dist(veh.pos_w)
     t = np.arange(1, steps + 1) * vcfg.command_dt
     return FlightLog(t, pos, d, veh.collided_buf.copy(), d.min(axis=0), active, solve_us, total_us, states)
+
+
+def plot_flights(kind: str, speeds: list[float], path: str, duration: float = 4.5) -> dict:
+    """Save a figure of distance-to-obstacle over time, shielded vs unshielded; return the minimum distances."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bare = fly(kind, speeds, shielded=False, duration=duration)
+    safe = fly(kind, speeds, shielded=True, duration=duration)
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    colours = plt.cm.viridis(np.linspace(0.0, 0.85, len(speeds)))
+    for i, v in enumerate(speeds):
+        ax.plot(safe.t, safe.distance[:, i], color=colours[i], label=f"{v:g} m/s, shield")
+        cut = np.argmax(bare.distance[:, i] <= bare.min_distance[i] + 1e-9) + 1
+        ax.plot(bare.t[:cut], bare.distance[:cut, i], color=colours[i], ls="--", label=f"{v:g} m/s, no shield")
+        if bare.collided[i]:
+            ax.plot(bare.t[cut - 1], bare.distance[cut - 1, i], "rx", ms=8)
+    ax.axhline(0.2, color="r", lw=0.8, ls=":", label="collision (vehicle radius 0.2 m)")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(f"distance to {kind} surface [m]")
+    ax.set_ylim(0, 6)
+    ax.set_title(f"Naive goal-seeking flight at a {kind}: HOCBF shield vs none")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return {"min_distance_shield": safe.min_distance.round(3).tolist(), "collided_no_shield": bare.collided.tolist()}
+
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.scripted", description=__doc__.splitlines()[0])
+    ap.add_argument("--kind", default="pole", choices=["pole", "wall"])
+    ap.add_argument("--speeds", default="3,5,7,9")
+    ap.add_argument("--plot", required=True, help="output PNG")
+    a = ap.parse_args()
+    print(plot_flights(a.kind, [float(s) for s in a.speeds.split(",")], a.plot))

@@ -170,13 +170,15 @@ def _select(
     n_el: int,
     k_max: int,
     out_r: np.ndarray,
+    out_b: np.ndarray,
 ) -> int:
     """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
 
     For each point o: r = p - o, margin m = 2 r.a_raw + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2),
     i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). Points are binned by
     the azimuth/elevation of o - p; each bin keeps its smallest margin, and the k_max smallest bins are written to
-    out_r (k_max, 3) in increasing margin order. Returns how many were written.
+    out_r (k_max, 3) in increasing margin order, with their HOCBF right-hand sides b (see ``hocbf_rows``) in
+    out_b. Returns how many were written.
     """
     n_sec = n_az * n_el
     best_m = np.full(n_sec, np.inf)
@@ -212,9 +214,14 @@ def _select(
         if best_i[s] < 0:
             break
         i = best_i[s]
-        out_r[n, 0] = p[0] - points[i, 0]
-        out_r[n, 1] = p[1] - points[i, 1]
-        out_r[n, 2] = p[2] - points[i, 2]
+        rx, ry, rz = p[0] - points[i, 0], p[1] - points[i, 1], p[2] - points[i, 2]
+        out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
+        # b = -2|v|^2 - alpha1 Bdot - alpha0 B,  Bdot = 2 r.v,  B = |r|^2 - r_safe^2
+        out_b[n] = (
+            -2.0 * vv
+            - alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
+            - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
+        )
         n += 1
     return n
 
@@ -257,6 +264,7 @@ class HOCBFShield:
         cfg.validate()
         self.camera = camera if camera is not None else CameraConfig()
         self._r_buf = np.zeros((cfg.max_constraints, 3))
+        self._b_buf = np.zeros(cfg.max_constraints)
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
@@ -282,7 +290,8 @@ class HOCBFShield:
         """Fraction of f_max reachable in the worst direction under the inscribed thrust facets."""
         self._sparse = cfg.solver in ("osqp", "scs", "clarabel")
         # OSQP's defaults (eps 1e-3) leave ~5e-3 m/s^2 errors; tighten them and polish to active-set accuracy.
-        self._solver_opts = {"eps_abs": 1e-7, "eps_rel": 1e-7, "polishing": True, "raise_error": False} if cfg.solver == "osqp" else {}
+        osqp_opts = {"eps_abs": 1e-7, "eps_rel": 1e-7, "polishing": True, "raise_error": False}
+        self._solver_opts = osqp_opts if cfg.solver == "osqp" else {}
 
     @staticmethod
     def _cap_directions(max_tilt: float) -> np.ndarray:
@@ -313,11 +322,10 @@ class HOCBFShield:
         n = _select(
             pts, np.asarray(pos_w, dtype=np.float64), np.asarray(vel_w, dtype=np.float64),
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
-            c.point_filter[1], c.azimuth_sectors, c.elevation_sectors, c.max_constraints, self._r_buf,
+            c.point_filter[1], c.azimuth_sectors, c.elevation_sectors, c.max_constraints, self._r_buf, self._b_buf,
         )  # fmt: skip
         r = self._r_buf[:n].copy()
-        a_mat, b_vec = hocbf_rows(r, np.asarray(vel_w, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe)
-        return r, a_mat, b_vec
+        return r, 2.0 * r, self._b_buf[:n].copy()
 
     def solve(
         self, accel_raw: np.ndarray, a_mat: np.ndarray, b_vec: np.ndarray, vel_w: np.ndarray

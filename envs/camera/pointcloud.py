@@ -38,9 +38,13 @@ def _backproject(
     out: np.ndarray,
 ) -> int:
     """Write world points of pixels with 0 < z < zhi into ``out`` (H*W, 3); return their count."""
-    # Camera pose: o_w = pos_w + R_wb mount_b, R_wc = R_wb R_bc.
-    o = pos_w + R_wb @ mount_b
-    R = R_wb @ Rbc
+    # Camera pose: o_w = pos_w + R_wb mount_b, R_wc = R_wb R_bc (written out: no BLAS call for 3x3).
+    o = np.empty(3)
+    R = np.empty((3, 3))
+    for i in range(3):
+        o[i] = pos_w[i] + R_wb[i, 0] * mount_b[0] + R_wb[i, 1] * mount_b[1] + R_wb[i, 2] * mount_b[2]
+        for j in range(3):
+            R[i, j] = R_wb[i, 0] * Rbc[0, j] + R_wb[i, 1] * Rbc[1, j] + R_wb[i, 2] * Rbc[2, j]
     H, W = depth.shape
     m = 0
     for v in range(H):

@@ -73,8 +73,10 @@ class DepthCamera:
     """
 
     def __init__(self, cfg: CameraConfig, scenes: Sequence[SceneLike], floor_z: float | None = None) -> None:
-        if isinstance(scenes, (Sphere, Cylinder, Capsule, Box)) or hasattr(scenes, "primitives"):
-            scenes = [scenes]
+        if hasattr(scenes, "primitives"):
+            scenes = [scenes]  # one Scene
+        elif len(scenes) and isinstance(scenes[0], (Sphere, Cylinder, Capsule, Box)):
+            scenes = [scenes]  # one flat primitive list
         self.cfg = cfg
         kinds, params, bsph, offsets = [], [], [], [0]
         self._moving_slices: list[slice] = []

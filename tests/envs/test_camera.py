@@ -157,6 +157,10 @@ def test_scene_ids_pick_each_cameras_scene():
     img = both.render(np.r_[pa, pb], np.r_[Ra, Rb], scene_ids=np.r_[[0] * 5, [1] * 5])
     assert np.array_equal(img[:5], DepthCamera(CFG, [a]).render(pa, Ra))
     assert np.array_equal(img[5:], DepthCamera(CFG, [b]).render(pb, Rb))
+    # a lone Scene or a flat primitive list is one scene
+    assert np.array_equal(img[:5], DepthCamera(CFG, a).render(pa, Ra))
+    assert DepthCamera(CFG, list(b.primitives)).num_scenes == 1
+    assert DepthCamera(CFG, a).render(np.zeros((0, 3)), np.zeros((0, 3, 3))).shape == (0, 1, 60, 100)
 
 
 def test_moving_obstacle_update_moves_what_is_seen():

@@ -45,6 +45,7 @@ def load_config(
     schema: type[T],
     files: Iterable[str | os.PathLike] | str | os.PathLike | None = None,
     overrides: Iterable[str] | Mapping[str, Any] | None = None,
+    base: T | None = None,
 ) -> T:
     """Build a validated config object of type ``schema``.
 
@@ -53,6 +54,7 @@ def load_config(
         files: YAML file(s) merged on top, in order. A YAML file may hold a top-level ``defaults: [file, ...]``
             list of other YAML files (relative to itself) merged before its own content.
         overrides: Dotted overrides, either ``["a.b=1", ...]`` or a mapping ``{"a.b": 1}``, merged last.
+        base: An existing config object of type ``schema`` to start from instead of the schema defaults.
 
     Returns:
         An instance of ``schema`` (a fresh object; nothing passed in is mutated).
@@ -60,7 +62,7 @@ def load_config(
     Raises:
         ConfigError: On an unknown key, a value of the wrong type, a missing required value, or a bad file.
     """
-    cfg = OmegaConf.structured(schema)
+    cfg = OmegaConf.structured(schema if base is None else base)
     if files is not None:
         if isinstance(files, (str, os.PathLike)):
             files = [files]

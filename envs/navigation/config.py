@@ -1,0 +1,245 @@
+"""Configuration of the navigation task (``ShieldNav-v0``): scenes, episodes, actions, rewards, randomization.
+
+Every field has a docstring with its unit. Load with ``envs.config.load_config(NavConfig, files, overrides)``;
+unknown keys and bad values fail at construction with the full dotted key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from envs.camera import CameraConfig, DepthNoiseConfig
+from envs.config import require
+from envs.vehicle.config import VehicleConfig
+
+REWARD_TERMS = ("navigation", "safety", "smooth", "collision", "success", "speed", "height")
+
+
+@dataclass
+class SceneSetConfig:
+    """Which scenes the envs fly in."""
+
+    family: str = "train"
+    """Scene family (train, ablation, benchmark, dynamic, forest)."""
+    indices: list[int] = field(default_factory=lambda: list(range(16)))
+    """Scene indices within the family; for ``train`` these are the curriculum levels in order."""
+    seed: int | None = None
+    """Family seed (None: the family's default seed; train and eval seed ranges are disjoint)."""
+    field_resolution: float = 0.2
+    """Grid spacing of the privileged fields [m]. 0.2 m keeps 16 training scenes at ~16 MB each (0.1 m: ~128 MB)."""
+    tile_gap: float = 20.0
+    """Gap between scene tiles in the MuJoCo world [m] (each scene is placed at its own x offset)."""
+
+
+@dataclass
+class EpisodeConfig:
+    """Starts, goals, target speeds, success and time limits."""
+
+    target_speeds: list[float] = field(default_factory=lambda: [3.0, 5.0, 7.0, 9.0])
+    """Target speeds [m/s]: each episode samples one uniformly (or from ``speed_range`` if it is set)."""
+    speed_range: list[float] = field(default_factory=list)
+    """If [lo, hi] is given, target speeds are sampled uniformly from it instead of ``target_speeds``."""
+    goal_radius: float = 5.0
+    """Success when the vehicle is within this distance of the goal point [m] (paper: 5 m)."""
+    yaw_cone_deg: float = 30.0
+    """Initial yaw is sampled within +-this of the direction to the goal [deg]."""
+    initial_speed_fraction: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    """Initial forward speed as a fraction [lo, hi] of the target speed, sampled uniformly."""
+    timeout_factor: float = 2.5
+    """Time limit = timeout_factor * straight-line distance / target speed + 5 s."""
+    out_of_bounds_margin: float = 1.0
+    """The episode ends when the vehicle leaves the scene bounds by more than this in x or y [m]."""
+
+
+@dataclass
+class ActionConfig:
+    """How the policy's normalised action in [-1, 1]^4 maps to the vehicle command [f_n, phi, theta, psi]."""
+
+    thrust_min: float = 2.0
+    """f_n at action -1 [m/s^2]; action 0 is hover (g); piecewise linear in between."""
+    thrust_max: float = 25.0
+    """f_n at action +1 [m/s^2]."""
+    max_tilt_deg: float = 45.0
+    """Roll and pitch references at action +-1 [deg]."""
+    yaw_range_deg: float = 60.0
+    """Yaw reference relative to the current heading at action +-1 [deg] (a heading lead, rate-like)."""
+
+
+@dataclass
+class RewardConfig:
+    """The paper's seven reward terms. r = sum_i scales[i] * r_i; each r_i is logged as reward/<name>."""
+
+    scales: dict[str, float] = field(
+        default_factory=lambda: {
+            "navigation": 1.0,
+            "safety": 0.05,
+            "smooth": 0.002,
+            "collision": 10.0,
+            "success": 10.0,
+            "speed": 0.02,
+            "height": 0.1,
+        }
+    )
+    """alpha_i per term (names: navigation, safety, smooth, collision, success, speed, height)."""
+    navigation: str = "geodesic"
+    """Potential Phi of the navigation term: ``geodesic`` (Dijkstra field) or ``euclidean`` (distance to goal)."""
+    nav_lambda: float = 1.0
+    """lambda: reward per metre of progress along Phi [1/m]."""
+    nav_clamp: float = 0.2
+    """C: progress per step is clamped to [-C, C] [m]."""
+    cbf_gamma: float = 2.0
+    """gamma of the CBF safety term [1/s]."""
+    cbf_d_safe: float = 0.6
+    """d_safe of the barrier b = d(x) - d_safe [m] (d: ESDF at the vehicle centre)."""
+    cbf_delta_min: float = -2.0
+    """delta_min: lower clip of the safety term (paper: -2)."""
+    smooth_magnitude: float = 0.1
+    """Weight of |a|^2 inside the smoothness term (the action change |a - a_prev|^2 has weight 1)."""
+    height_band: list[float] = field(default_factory=lambda: [0.5, 2.5])
+    """Altitudes [lo, hi] outside which the height term penalises linearly [m]."""
+
+
+@dataclass
+class CurriculumConfig:
+    """legged_gym-style level curriculum over the scene list (levels = scene indices in order)."""
+
+    enabled: bool = True
+    """Move envs between scenes by outcome; when off, scenes are sampled uniformly per episode."""
+    initial_max_level: int = 3
+    """Initial levels are sampled uniformly in [0, initial_max_level]."""
+    demote_after: int = 2
+    """Consecutive failures that move an env down one level."""
+
+
+@dataclass
+class Range:
+    """A uniform range [lo, hi]; ``enabled`` false means the nominal value is used."""
+
+    enabled: bool = False
+    """Sample this parameter per episode."""
+    lo: float = 1.0
+    """Lower bound (a scale factor unless the field says otherwise)."""
+    hi: float = 1.0
+    """Upper bound."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Lo <= hi."""
+        require(self.lo <= self.hi, f"{prefix}lo", f"must be <= hi ({self.hi}), got {self.lo}")
+
+
+@dataclass
+class RandomizationConfig:
+    """Domain randomization, re-sampled per episode for the envs that reset. Every item can be switched off."""
+
+    mass_scale: Range = field(default_factory=lambda: Range(True, 0.9, 1.1))
+    """Plant mass scale (the controller keeps the nominal mass)."""
+    inertia_scale: Range = field(default_factory=lambda: Range(True, 0.85, 1.15))
+    """Plant inertia scale."""
+    thrust_scale: Range = field(default_factory=lambda: Range(True, 0.9, 1.1))
+    """Motor maximum-thrust (thrust coefficient) scale."""
+    torque_scale: Range = field(default_factory=lambda: Range(True, 0.85, 1.15))
+    """Rotor drag-torque coefficient scale."""
+    motor_tau_scale: Range = field(default_factory=lambda: Range(True, 0.8, 1.25))
+    """Motor time-constant scale (up and down together)."""
+    gain_scale: Range = field(default_factory=lambda: Range(True, 0.85, 1.15))
+    """Inner-loop gain scale (attitude P and rate P/I/D together)."""
+    action_latency_steps: list[int] = field(default_factory=lambda: [0, 2])
+    """Action latency, whole policy steps [lo, hi], sampled per episode."""
+    vel_noise_std: float = 0.05
+    """Std of Gaussian noise on the observed body velocity [m/s]."""
+    att_noise_std_deg: float = 0.5
+    """Std of a random small rotation applied to the observed attitude [deg]."""
+    wind_max: float = 1.0
+    """Constant wind force magnitude per episode, uniform in [0, wind_max], horizontal direction uniform [N]."""
+    gust_std: float = 0.3
+    """Std of the gust force (an Ornstein-Uhlenbeck process, 1 s correlation) [N]."""
+    depth_noise: DepthNoiseConfig = field(
+        default_factory=lambda: DepthNoiseConfig(depth_sigma_coeff=0.01, dropout_prob=0.02, holes_per_frame=0.5)
+    )
+    """Depth sensor model (policy image only; the critic never sees it)."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Check ranges."""
+        lo, hi = self.action_latency_steps
+        require(0 <= lo <= hi <= 10, f"{prefix}action_latency_steps", f"must be 0 <= lo <= hi <= 10, got {[lo, hi]}")
+        require(self.vel_noise_std >= 0, f"{prefix}vel_noise_std", "must be >= 0")
+        require(self.att_noise_std_deg >= 0, f"{prefix}att_noise_std_deg", "must be >= 0")
+        require(self.wind_max >= 0, f"{prefix}wind_max", "must be >= 0")
+        require(self.gust_std >= 0, f"{prefix}gust_std", "must be >= 0")
+
+    def disable(self) -> None:
+        """Switch every randomization off (evaluation without randomization)."""
+        for name in ("mass_scale", "inertia_scale", "thrust_scale", "torque_scale", "motor_tau_scale", "gain_scale"):
+            getattr(self, name).enabled = False
+        self.action_latency_steps = [0, 0]
+        self.vel_noise_std = self.att_noise_std_deg = self.wind_max = self.gust_std = 0.0
+        self.depth_noise = DepthNoiseConfig()
+
+
+@dataclass
+class NavConfig:
+    """The whole task. See docs/task.md for the MDP in one page."""
+
+    num_envs: int = 64
+    """Number of vehicles stepped together."""
+    seed: int = 0
+    """Seed of the env's random generator (starts, goals, speeds, randomization)."""
+    scenes: SceneSetConfig = field(default_factory=SceneSetConfig)
+    """Scene set."""
+    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
+    """Episodes."""
+    action: ActionConfig = field(default_factory=ActionConfig)
+    """Action scaling."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """Rewards."""
+    collision_margin: float = 0.0
+    """Extra margin [m]: the episode also ends as a collision when the ESDF at the vehicle centre drops below
+    vehicle radius + margin. 0: only physical MuJoCo contact counts. The paper's geometric-inflation baseline uses
+    0.2 (a doubled 0.4 m margin)."""
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    """Curriculum over the scene list."""
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    """Domain randomization."""
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    """The quadrotor and its inner loop."""
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    """The depth camera."""
+    autoreset: bool = True
+    """Reset finished envs inside ``step`` (same-step autoreset). False: finished envs hover, frozen, until reset."""
+    critic_depth_pool: list[int] = field(default_factory=lambda: [6, 10])
+    """The critic sees the clean depth min-pooled to this (rows, cols) grid."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Cross-field checks naming the key."""
+        require(self.num_envs >= 1, f"{prefix}num_envs", f"must be >= 1, got {self.num_envs}")
+        for k in self.reward.scales:
+            require(k in REWARD_TERMS, f"{prefix}reward.scales.{k}", f"unknown reward term; known: {REWARD_TERMS}")
+        require(
+            self.reward.navigation in ("geodesic", "euclidean"),
+            f"{prefix}reward.navigation",
+            f"must be 'geodesic' or 'euclidean', got {self.reward.navigation!r}",
+        )
+        require(self.reward.nav_clamp > 0, f"{prefix}reward.nav_clamp", "must be > 0")
+        require(self.reward.cbf_delta_min < 0, f"{prefix}reward.cbf_delta_min", "must be < 0")
+        require(len(self.reward.height_band) == 2, f"{prefix}reward.height_band", "must be [lo, hi]")
+        require(len(self.scenes.indices) >= 1, f"{prefix}scenes.indices", "must name at least one scene")
+        require(self.scenes.field_resolution > 0, f"{prefix}scenes.field_resolution", "must be > 0")
+        sp = self.episode.speed_range
+        require(
+            (len(sp) == 0 and len(self.episode.target_speeds) >= 1 and min(self.episode.target_speeds) > 0)
+            or (len(sp) == 2 and 0 < sp[0] <= sp[1]),
+            f"{prefix}episode.speed_range",
+            "give target_speeds (all > 0) or speed_range [lo, hi] with 0 < lo <= hi",
+        )
+        require(self.episode.goal_radius > 0, f"{prefix}episode.goal_radius", "must be > 0")
+        a = self.action
+        require(
+            0 < a.thrust_min < self.vehicle.gravity < a.thrust_max <= self.vehicle.controller.thrust_range[1],
+            f"{prefix}action.thrust_max",
+            f"need 0 < thrust_min < g < thrust_max <= vehicle.controller.thrust_range[1]; got {a.thrust_min}, "
+            f"{a.thrust_max}",
+        )
+        require(0 < a.max_tilt_deg <= self.vehicle.controller.max_tilt_deg, f"{prefix}action.max_tilt_deg",
+                "must be in (0, vehicle.controller.max_tilt_deg]")  # fmt: skip
+        require(self.collision_margin >= 0, f"{prefix}collision_margin", "must be >= 0")
+        require(len(self.critic_depth_pool) == 2, f"{prefix}critic_depth_pool", "must be [rows, cols]")

@@ -1,0 +1,78 @@
+"""rsl-rl adapter: :class:`envs.navigation.NavigationEnv` as an ``rsl_rl.env.VecEnv`` with TensorDict observations.
+
+Observation groups (map them with the runner's ``obs_groups``, e.g. ``{"actor": ["depth", "state"],
+"critic": ["critic"]}``):
+
+========  ====================  ==========================================================
+group     shape                 content
+========  ====================  ==========================================================
+depth     (N, 1, 60, 100)       noisy normalised depth (policy)
+state     (N, 21)               noisy proprioception and goal (policy), see ``STATE_LAYOUT``
+critic    (N, C)                noise-free privileged vector (critic only)
+========  ====================  ==========================================================
+
+``extras["time_outs"]`` (N,) marks truncations for bootstrapping; ``extras["log"]`` holds per-step reward-term means
+and, for finished episodes, their outcomes (success, collision, timeout, out of bounds), mean speed and clearance,
+which rsl-rl's logger averages per iteration and writes to tensorboard.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+from envs.navigation import NavigationEnv
+
+
+class RslRlVecEnv(VecEnv):
+    """Wraps a :class:`NavigationEnv` (numpy) for rsl-rl (torch). Shapes are stated in the module docstring.
+
+    Args:
+        env: The batched navigation env.
+        device: Torch device for the returned tensors.
+    """
+
+    def __init__(self, env: NavigationEnv, device: str | torch.device = "cpu") -> None:  # noqa: D107
+        self.env = env
+        self.cfg = env.cfg
+        self.device = torch.device(device)
+        self.num_envs = env.num_envs
+        self.num_actions = 4
+        obs, info = env.reset(seed=env.cfg.seed)
+        self._obs = self._to_tensordict(obs, info["critic"])
+
+    @property
+    def max_episode_length(self) -> torch.Tensor:
+        """Per-env time limit in steps (N,)."""
+        return torch.from_numpy(self.env.max_episode_length_buf.copy()).to(self.device)
+
+    @property
+    def episode_length_buf(self) -> torch.Tensor:
+        """Current episode lengths (N,); assigning to it (rsl-rl's random initial lengths) writes through."""
+        return torch.from_numpy(self.env.episode_length_buf.copy()).to(self.device)
+
+    @episode_length_buf.setter
+    def episode_length_buf(self, value: torch.Tensor) -> None:
+        self.env.episode_length_buf[:] = np.minimum(
+            value.detach().cpu().numpy().astype(np.int64), self.env.max_episode_length_buf - 1
+        )
+
+    def _to_tensordict(self, obs: dict, critic: np.ndarray) -> TensorDict:
+        data = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
+        data["critic"] = torch.from_numpy(np.ascontiguousarray(critic))
+        return TensorDict(data, batch_size=[self.num_envs], device=self.device)
+
+    def get_observations(self) -> TensorDict:
+        """The current observation groups."""
+        return self._obs
+
+    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+        """Step with actions (N, 4); returns observations, rewards (N,), dones (N,) and extras."""
+        obs, rew, term, trunc, info = self.env.step(actions.detach().cpu().numpy().astype(np.float64))
+        self._obs = self._to_tensordict(obs, info["critic"])
+        log = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in info["log"].items()}
+        extras = {"time_outs": torch.from_numpy(trunc).to(self.device), "log": log}
+        dones = torch.from_numpy(term | trunc).to(self.device)
+        return self._obs, torch.from_numpy(rew.astype(np.float32)).to(self.device), dones, extras

@@ -1,0 +1,257 @@
+"""The navigation task: rewards against hand-computed values, episodes, resets, determinism, gymnasium and rsl-rl."""
+
+import math
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+import envs  # noqa: F401  (registers ShieldNav-v0)
+from envs.config import ConfigError
+from envs.fields import build_fields
+from envs.navigation import REWARD_TERMS, STATE_DIM, NavigationEnv
+from envs.navigation import rewards as R
+from envs.rsl_rl import RslRlVecEnv
+from envs.scenes import Box, Scene
+
+SMALL = {"scenes.indices": [0, 1]}
+QUIET = {
+    **SMALL,
+    "randomization.mass_scale.enabled": False,
+    "randomization.inertia_scale.enabled": False,
+    "randomization.thrust_scale.enabled": False,
+    "randomization.torque_scale.enabled": False,
+    "randomization.motor_tau_scale.enabled": False,
+    "randomization.gain_scale.enabled": False,
+    "randomization.action_latency_steps": [0, 0],
+    "randomization.vel_noise_std": 0.0,
+    "randomization.att_noise_std_deg": 0.0,
+    "randomization.wind_max": 0.0,
+    "randomization.gust_std": 0.0,
+    "randomization.depth_noise.depth_sigma_coeff": 0.0,
+    "randomization.depth_noise.dropout_prob": 0.0,
+    "randomization.depth_noise.holes_per_frame": 0.0,
+}
+
+
+# ----------------------------------------------------------------------------- reward terms by hand
+def test_reward_terms_hand_computed():
+    # Navigation: lambda * clamp(Phi_prev - Phi_now, -C, C) with lambda 2, C 0.2.
+    np.testing.assert_allclose(R.navigation(np.array([10.0, 10.0, 10.0]), np.array([9.9, 9.5, 10.4]), 2.0, 0.2),
+                               [0.2, 0.4, -0.4])  # fmt: skip
+    # Safety: b = d - d_safe; bdot = grad . v; clip(bdot + gamma b, -2, 0).
+    # Env 0: d = 1.0, d_safe 0.6 -> b = 0.4; moving away (bdot = +1): 1 + 2*0.4 = 1.8 -> clipped to 0.
+    # Env 1: d = 0.7 -> b = 0.1; approaching at 1 m/s along -grad: -1 + 0.2 = -0.8.
+    # Env 2: d = 0.3 -> b = -0.3; approaching at 5 m/s: -5 - 0.6 = -5.6 -> clipped to -2.
+    grad = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]])
+    vel = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, -5.0, 0]])
+    np.testing.assert_allclose(R.safety(np.array([1.0, 0.7, 0.3]), grad, vel, 2.0, 0.6, -2.0), [0.0, -0.8, -2.0])
+    # Smoothness: -(w |a|^2 + |a - a_prev|^2), w = 0.1: a = (1, 0, 0, 0), a_prev = 0 -> -(0.1 + 1) = -1.1.
+    np.testing.assert_allclose(R.smooth(np.array([[1.0, 0, 0, 0]]), np.zeros((1, 4)), 0.1), [-1.1])
+    # Speed: -(|v| - v_t)^2 above the target only: |v| = 5 vs 3 -> -4; |v| = 2 -> 0.
+    np.testing.assert_allclose(
+        R.speed(
+            np.array([[3.0, 4.0, 0], [2.0, 0, 0]]),
+            np.array([3.0, 3.0]),
+        ),
+        [-4.0, 0.0],
+    )
+    # Height band [0.5, 2.5]: z = 0.2 -> -0.3; z = 3.0 -> -0.5; z = 1 -> 0.
+    np.testing.assert_allclose(R.height(np.array([0.2, 3.0, 1.0]), 0.5, 2.5), [-0.3, -0.5, 0.0])
+    np.testing.assert_array_equal(R.collision(np.array([True, False])), [-1.0, 0.0])
+    np.testing.assert_array_equal(R.success(np.array([True, False])), [1.0, 0.0])
+
+
+def test_geodesic_progress_positive_where_euclidean_is_negative():
+    # A wall across the course at x = 30 with a single gap at y in [8, 12]. Flying from (28, 0) towards the gap
+    # (+y) moves away from the goal in straight-line terms but along the shortest path around the wall.
+    wall = (Box((30.0, -4.0, 1.5), (0.2, 12.0, 1.5)), Box((30.0, 14.0, 1.5), (0.2, 2.0, 1.5)))
+    scene = Scene(primitives=wall)
+    stack = build_fields(scene, resolution=0.2, vehicle_radius=0.2, use_cache=False).stack()
+    goal = np.array([63.5, 0.0, 1.5])
+    p0, p1 = np.array([[28.0, 0.0, 1.5]]), np.array([[28.0, 0.3, 1.5]])
+    ids = np.zeros(1, dtype=np.int64)
+    r_geo = R.navigation(stack.geodesic(ids, p0), stack.geodesic(ids, p1), 1.0, 0.5)
+    r_euc = R.navigation(np.linalg.norm(goal - p0, axis=1), np.linalg.norm(goal - p1, axis=1), 1.0, 0.5)
+    assert r_geo[0] > 0.2  # ~0.3 m of progress along the geodesic
+    assert r_euc[0] < 0.0
+
+
+# ----------------------------------------------------------------------------- the env
+@pytest.fixture(scope="module")
+def quiet_env():
+    return NavigationEnv(num_envs=4, **QUIET)
+
+
+def test_reward_is_the_sum_of_the_logged_terms(quiet_env):
+    env = quiet_env
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        _, rew, _, _, info = env.step(rng.uniform(-0.5, 0.5, (4, 4)))
+        logged = sum(info["log"][f"reward/{t}"] for t in REWARD_TERMS)
+        assert rew.mean() == pytest.approx(logged, abs=1e-12)
+
+
+def test_collision_terminates_is_not_a_timeout_and_agrees_with_the_esdf(quiet_env):
+    env = quiet_env
+    # Pin env 0 just in front of the nearest obstacle of scene 0, pointing at it, at 4 m/s.
+    scene = env.scenes[0]
+    prim = next(p for p in scene.primitives if hasattr(p, "p0") and 10 < p.p0[0] < 50 and abs(p.p0[1]) < 10)
+    target = np.array([prim.p0[0], prim.p0[1], 1.5])
+    start = target - np.array([2.5, 0.0, 0.0])
+    opts = {"scene_ids": [0] * 4, "start": np.tile(start, (4, 1)), "goal": np.tile([63.5, 0.0, 1.5], (4, 1)),
+            "speed": [4.0] * 4, "yaw": [0.0] * 4}  # fmt: skip
+    env.reset(seed=1, options=opts)
+    env.vehicles.reset(np.arange(4), env.vehicles.pos_w.copy(), vel_w=np.tile([4.0, 0, 0], (4, 1)))
+    hover_fwd = np.zeros((4, 4))
+    for _ in range(200):
+        _, rew, term, trunc, info = env.step(hover_fwd)
+        if term[0]:
+            break
+    assert term[0] and info["collision"][0] and not trunc[0] and not info["time_outs"][0]
+    assert info["log"]["episode/collision"][0] == 1.0
+    # The reward of that step includes the scaled collision penalty.
+    assert rew[0] <= -env.cfg.reward.scales["collision"] + 1.0
+    # MuJoCo's contact and the ESDF agree: the episode's smallest ESDF at the vehicle centre (reached at the
+    # contact) equals the 0.2 m collision radius up to the 0.2 m field grid's interpolation error and the
+    # penetration of one 2 ms physics step at 4 m/s (8 mm).
+    min_clear = info["log"]["episode/min_clearance"][0]
+    assert abs(min_clear - env.cfg.vehicle.airframe.collision_radius) < 0.1
+
+
+def test_success_at_the_goal(quiet_env):
+    env = quiet_env
+    goal = np.array([63.5, 0.0, 1.5])
+    opts = {"scene_ids": [1] * 4, "start": np.tile(goal - [3.0, 0, 0], (4, 1)), "goal": np.tile(goal, (4, 1)),
+            "speed": [3.0] * 4}  # fmt: skip
+    env.reset(seed=2, options=opts)
+    _, rew, term, trunc, info = env.step(np.zeros((4, 4)))
+    assert term.all() and info["success"].all() and not trunc.any()
+    assert np.all(rew >= env.cfg.reward.scales["success"] - 1.0)
+
+
+def test_resets_only_touch_finished_envs(quiet_env):
+    env = quiet_env
+    goal = np.array([63.5, 0.0, 1.5])
+    starts = np.array([goal - [3.0, 0, 0], [0.5, 0, 1.5], [0.5, 3, 1.5], [0.5, -3, 1.5]])
+    opts = {"scene_ids": [1] * 4, "start": starts, "goal": np.tile(goal, (4, 1)), "speed": [3.0] * 4}
+    env.reset(seed=4, options=opts)
+    for _ in range(5):
+        env.step(np.zeros((4, 4)))
+    before = env.vehicles.pos_w.copy()
+    lengths = env.episode_length_buf.copy()
+    # Env 0 finished on the first step (success) and was reset; envs 1-3 kept going.
+    assert lengths[0] < 5 and np.all(lengths[1:] == 5)
+    _, _, term, _, _ = env.step(np.zeros((4, 4)))
+    assert np.all(env.episode_length_buf[1:] == 6)
+    assert np.all(np.linalg.norm(env.vehicles.pos_w[1:] - before[1:], axis=1) < 0.2)
+
+
+def test_domain_randomization_ranges_are_respected():
+    env = NavigationEnv(num_envs=64, **SMALL)
+    env.reset(seed=0)
+    r = env.cfg.randomization
+    mass = env.vehicles.model.body_mass[env.vehicles.body_ids]
+    assert np.all(mass >= r.mass_scale.lo - 1e-12) and np.all(mass <= r.mass_scale.hi + 1e-12)
+    assert mass.std() > 0.02  # actually randomised
+    t_max = env.vehicles.motor_t_max / env.cfg.vehicle.max_motor_thrust
+    assert np.all((t_max >= r.thrust_scale.lo - 1e-12) & (t_max <= r.thrust_scale.hi + 1e-12))
+    lo, hi = r.action_latency_steps
+    assert set(np.unique(env.latency_buf)) <= set(range(lo, hi + 1)) and len(np.unique(env.latency_buf)) > 1
+    assert np.all(np.linalg.norm(env.wind_buf, axis=1) <= r.wind_max + 1e-12)
+    gain = env.vehicles.controller.rate_p[:, 0] / env.cfg.vehicle.controller.rate_p[0]
+    assert np.all((gain >= r.gain_scale.lo - 1e-12) & (gain <= r.gain_scale.hi + 1e-12))
+
+
+def test_determinism_under_a_seed():
+    a, b = NavigationEnv(num_envs=3, **SMALL), NavigationEnv(num_envs=3, **SMALL)
+    oa, _ = a.reset(seed=11)
+    ob, _ = b.reset(seed=11)
+    np.testing.assert_array_equal(oa["state"], ob["state"])
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        act = rng.uniform(-1, 1, (3, 4))
+        ra, rb = a.step(act), b.step(act)
+        np.testing.assert_array_equal(ra[0]["depth"], rb[0]["depth"])
+        np.testing.assert_array_equal(ra[1], rb[1])
+
+
+def test_batched_and_single_envs_give_the_same_transitions():
+    opts1 = {"scene_ids": [0], "start": [[0.5, 1.0, 1.5]], "goal": [[63.5, 2.0, 1.5]], "speed": [5.0], "yaw": [0.1]}
+    opts4 = {k: np.concatenate([np.asarray(v)] * 4) for k, v in opts1.items()}
+    one, four = NavigationEnv(num_envs=1, **QUIET), NavigationEnv(num_envs=4, **QUIET)
+    o1, _ = one.reset(seed=0, options=opts1)
+    o4, _ = four.reset(seed=0, options=opts4)
+    rng = np.random.default_rng(2)
+    for _ in range(40):
+        act = rng.uniform(-0.5, 0.5, (1, 4))
+        o1, r1, *_ = one.step(act)
+        o4, r4, *_ = four.step(np.repeat(act, 4, axis=0))
+        np.testing.assert_allclose(o4["state"][0], o1["state"][0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(r4[0], r1[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(o4["depth"][0], o1["depth"][0], atol=1e-5)
+
+
+def test_observation_layout_and_spaces():
+    env = NavigationEnv(num_envs=2, **SMALL)
+    obs, info = env.reset(seed=0)
+    assert obs["depth"].shape == (2, 1, 60, 100) and obs["depth"].dtype == np.float32
+    assert obs["state"].shape == (2, STATE_DIM)
+    assert env.observation_space.contains(obs)
+    assert info["critic"].shape == (2, env.critic_dim)
+    # Rotation block is a rotation matrix; prev action zero at reset; goal altitude inside the band.
+    rot = obs["state"][:, 3:12].reshape(2, 3, 3)
+    np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.tile(np.eye(3), (2, 1, 1)), atol=0.05)
+    np.testing.assert_array_equal(obs["state"][:, 12:16], 0.0)
+
+
+def test_bad_input_fails_with_the_key_or_index():
+    with pytest.raises(ConfigError, match=r"reward\.nav_lambdaa"):
+        NavigationEnv(num_envs=2, **{"reward.nav_lambdaa": 1.0})
+    with pytest.raises(ConfigError, match=r"reward\.navigation"):
+        NavigationEnv(num_envs=2, **{"reward.navigation": "manhattan"})
+    with pytest.raises(ConfigError, match=r"reward\.scales\.speedy"):
+        NavigationEnv(num_envs=2, **{"reward.scales": {"speedy": 1.0}})
+    env = NavigationEnv(num_envs=3, **SMALL)
+    env.reset(seed=0)
+    act = np.zeros((3, 4))
+    act[1, 2] = np.inf
+    with pytest.raises(ValueError, match=r"env index\(es\) \[1\]"):
+        env.step(act)
+
+
+# ----------------------------------------------------------------------------- gymnasium and rsl-rl
+def test_gymnasium_make_and_check_env():
+    from gymnasium.utils.env_checker import check_env
+
+    env = gymnasium.make("ShieldNav-v0", **SMALL)
+    check_env(env.unwrapped, skip_render_check=True)
+    vec = gymnasium.make_vec("ShieldNav-v0", num_envs=3, **SMALL)
+    assert vec.num_envs == 3
+    obs, _ = vec.reset(seed=0)
+    assert obs["depth"].shape == (3, 1, 60, 100)
+
+
+def test_rsl_rl_adapter_and_one_ppo_iteration(tmp_path):
+    from rsl_rl.runners import OnPolicyRunner
+
+    vec = RslRlVecEnv(NavigationEnv(num_envs=4, **SMALL))
+    obs = vec.get_observations()
+    assert set(obs.keys()) == {"depth", "state", "critic"}
+    assert obs["depth"].shape == (4, 1, 60, 100) and obs["state"].shape == (4, STATE_DIM)
+    obs, rew, done, extras = vec.step(torch.zeros(4, 4))
+    assert rew.shape == (4,) and done.shape == (4,) and extras["time_outs"].shape == (4,)
+    assert "reward/navigation" in extras["log"]
+    cfg = {
+        "num_steps_per_env": 4, "save_interval": 10, "obs_groups": {"actor": ["state"], "critic": ["critic"]},
+        "algorithm": {"class_name": "PPO", "num_learning_epochs": 1, "num_mini_batches": 1},
+        "actor": {"class_name": "MLPModel", "hidden_dims": [16], "activation": "elu",
+                  "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 0.5}},
+        "critic": {"class_name": "MLPModel", "hidden_dims": [16], "activation": "elu"},
+    }  # fmt: skip
+    runner = OnPolicyRunner(vec, cfg, log_dir=str(tmp_path), device="cpu")
+    runner.learn(1)
+    assert list(tmp_path.glob("events.out.tfevents*"))  # rsl-rl's tensorboard writer ran
+    assert math.isfinite(float(vec.get_observations()["critic"].sum()))

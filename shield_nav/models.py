@@ -1,0 +1,339 @@
+"""Neural models for rsl-rl 5.x: the paper's depth CNN + GRU actor (and the critic choice).
+
+Paper, "Network Architecture": the actor encodes the 100 x 60 depth image with a CNN (convolution, ReLU, pooling)
+into a compact feature ``f_CNN``, concatenates it with the proprioceptive state, feeds the result to a GRU, and an
+MLP head turns the GRU output into the parameters of a Gaussian over the 4-D action. The critic is asymmetric: it
+sees the noise-free privileged group only, so rsl-rl's own :class:`rsl_rl.models.MLPModel` serves as the critic
+(``critic.class_name: "MLPModel"``); no class is needed here for it.
+
+:class:`DepthGRUModel` is written against rsl-rl's model interface (the one ``MLPModel`` / ``CNNModel`` /
+``RNNModel`` implement), so the stock ``OnPolicyRunner`` and ``PPO`` run it unchanged with
+``actor.class_name: "shield_nav.models:DepthGRUModel"``:
+
+* rollout mode (``masks is None``): observations are one step for all envs, ``depth (N, C, H, W)``,
+  ``state (N, S)``; the GRU hidden state ``(L, N, Hd)`` is kept inside the model, reset per env on ``done``;
+* batch mode (PPO update): observations are rollout chunks split at dones and zero-padded by rsl-rl's
+  ``split_and_pad_trajectories``, ``depth (T, B, C, H, W)``, ``state (T, B, S)`` with ``masks (T, B)``; the GRU
+  starts every chunk from the hidden state the storage recorded when the chunk started (truncated BPTT over the
+  chunk, exactly as rsl-rl's ``RNNModel``), and the output is un-padded back to ``(T, N_mb, ...)``.
+
+Exports (TorchScript and ONNX) carry the GRU state explicitly: ``(obs, depth, h_in) -> (actions, h_out)``.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import warnings
+
+import torch
+import torch.nn as nn
+from rsl_rl.models import MLPModel
+from rsl_rl.modules import RNN, HiddenState
+from tensordict import TensorDict
+
+__all__ = ["DepthEncoder", "DepthGRUModel", "ExportedDepthGRU", "export_policy"]
+
+
+class DepthEncoder(nn.Module):
+    """Depth-image encoder: ``[Conv2d -> ReLU (-> MaxPool2d(2))] x K -> Flatten -> Linear -> ReLU``.
+
+    A convolution of kernel ``k`` and stride ``s`` pads by ``k // 2`` for odd ``k`` and not at all for even ``k``
+    (so ``k = s`` tiles the image into patches); with ``H_in`` rows it gives
+    ``H_conv = floor((H_in + 2 * pad - k) / s) + 1`` and the optional 2 x 2 max pool ``floor(H_conv / 2)`` (same
+    for the width). The default stack on a 60 x 100 image (channels 8, 16, 32; kernels 4, 3, 3; strides 4, 1, 1;
+    pooling after layers 2 and 3):
+
+    ``(1, 60, 100) -conv4/4-> (8, 15, 25) -conv3-> (16, 15, 25) -pool-> (16, 7, 12) -conv3-> (32, 7, 12)
+    -pool-> (32, 3, 6) -flatten-> 576 -linear-> feature_dim``.
+
+    The first layer is a stride-4 patch convolution without pooling because, measured on this 2-core CPU,
+    a full-resolution first feature map (e.g. 16 x 30 x 50 after a stride-2 convolution) makes the ReLU and
+    pooling passes memory-bound and the encoder 3-6x slower for the same output size (see docs/training.md).
+    Every pixel still reaches a filter, so one-pixel-wide poles are not skipped.
+    """
+
+    def __init__(
+        self,
+        input_hw: tuple[int, int],
+        in_channels: int,
+        channels: tuple[int, ...] | list[int],
+        kernel_sizes: tuple[int, ...] | list[int],
+        strides: tuple[int, ...] | list[int],
+        max_pool: tuple[bool, ...] | list[bool],
+        feature_dim: int,
+    ) -> None:
+        """Build the encoder.
+
+        Args:
+            input_hw: Image height and width (rows, columns).
+            in_channels: Input channels (1 for a depth image).
+            channels: Output channels of each convolution.
+            kernel_sizes: Kernel size of each convolution (square).
+            strides: Stride of each convolution.
+            max_pool: Whether a 2 x 2 max pool follows each convolution.
+            feature_dim: Size of the output feature ``f_CNN``.
+        """
+        super().__init__()
+        if not (len(channels) == len(kernel_sizes) == len(strides) == len(max_pool)) or len(channels) == 0:
+            raise ValueError(
+                "cnn_channels, cnn_kernel_sizes, cnn_strides and cnn_max_pool must be non-empty and of equal length,"
+                f" got {list(channels)}, {list(kernel_sizes)}, {list(strides)}, {list(max_pool)}"
+            )
+        layers: list[nn.Module] = []
+        c, (h, w) = in_channels, input_hw
+        for c_out, k, st, pool in zip(channels, kernel_sizes, strides, max_pool, strict=True):
+            k, st, pad = int(k), int(st), int(k) // 2 if int(k) % 2 else 0
+            layers += [nn.Conv2d(c, int(c_out), k, stride=st, padding=pad), nn.ReLU()]
+            h, w = (h + 2 * pad - k) // st + 1, (w + 2 * pad - k) // st + 1
+            if pool:
+                layers.append(nn.MaxPool2d(2))
+                h, w = h // 2, w // 2
+            if h < 1 or w < 1:
+                raise ValueError(f"the CNN stack shrinks a {tuple(input_hw)} image to nothing; use fewer layers")
+            c = c_out
+        self.conv = nn.Sequential(*layers)
+        self.conv_out_shape = (c, h, w)
+        """Shape (C, H, W) of the last pooled feature map."""
+        self.proj = nn.Sequential(nn.Flatten(start_dim=1), nn.Linear(c * h * w, feature_dim), nn.ReLU())
+        self.feature_dim = feature_dim
+        """Size of the output feature."""
+        for m in self.conv:
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+                nn.init.zeros_(m.bias)
+
+    def forward(self, depth: torch.Tensor) -> torch.Tensor:
+        """Encode images ``(B, C, H, W)`` into features ``(B, feature_dim)``."""
+        return self.proj(self.conv(depth))
+
+
+class DepthGRUModel(MLPModel):
+    """Depth CNN + GRU + MLP actor for rsl-rl 5.x (paper, "Network Architecture").
+
+    ``x_t = [normalize(state_t), CNN(depth_t)]``; ``y_t, h_t = GRU(x_t, h_{t-1})``; ``mu_t = MLP(y_t)``; the action
+    distribution is built from ``mu_t`` by ``distribution_cfg`` (e.g. rsl-rl's ``GaussianDistribution`` with a
+    state-independent learnable std).
+
+    Observation groups of the ``obs_set`` (e.g. ``actor: ["depth", "state"]``) are split by rank, as rsl-rl's
+    ``CNNModel`` does: exactly one 4-D group ``(N, C, H, W)`` (the depth image, already normalised to [0, 1] by
+    the env, so it is not normalised again) and one or more 2-D groups ``(N, S_i)`` concatenated in the listed
+    order into the state ``(N, S)``, optionally normalised by rsl-rl's ``EmpiricalNormalization``.
+    """
+
+    is_recurrent: bool = True
+    """Whether the model contains a recurrent module (PPO then uses the recurrent mini-batch generator)."""
+
+    def __init__(
+        self,
+        obs: TensorDict,
+        obs_groups: dict[str, list[str]],
+        obs_set: str,
+        output_dim: int,
+        hidden_dims: tuple[int, ...] | list[int] = (128, 64),
+        activation: str = "elu",
+        obs_normalization: bool = True,
+        distribution_cfg: dict | None = None,
+        cnn_channels: tuple[int, ...] | list[int] = (8, 16, 32),
+        cnn_kernel_sizes: tuple[int, ...] | list[int] = (4, 3, 3),
+        cnn_strides: tuple[int, ...] | list[int] = (4, 1, 1),
+        cnn_max_pool: tuple[bool, ...] | list[bool] = (False, True, True),
+        cnn_feature_dim: int = 64,
+        rnn_hidden_dim: int = 128,
+        rnn_num_layers: int = 1,
+    ) -> None:
+        """Build the model from one batch of observations (only shapes are read).
+
+        Args:
+            obs: Observation TensorDict, e.g. ``depth (N, 1, 60, 100)`` and ``state (N, 21)``.
+            obs_groups: Mapping of observation sets to lists of observation groups.
+            obs_set: The set this model reads (``"actor"``).
+            output_dim: Action dimension (4).
+            hidden_dims: Hidden sizes of the MLP head after the GRU.
+            activation: Activation of the MLP head (rsl-rl name, e.g. ``"elu"``).
+            obs_normalization: Normalise the 1-D state groups with running mean/std (updated by PPO after
+                each update, frozen in exports).
+            distribution_cfg: rsl-rl distribution config, e.g. ``{"class_name": "GaussianDistribution",
+                "init_std": 1.0, "std_type": "scalar"}``. ``None`` gives a deterministic model.
+            cnn_channels: Output channels of each convolution.
+            cnn_kernel_sizes: Kernel size of each convolution.
+            cnn_strides: Stride of each convolution.
+            cnn_max_pool: Whether a 2 x 2 max pool follows each convolution.
+            cnn_feature_dim: Size of the visual feature ``f_CNN``.
+            rnn_hidden_dim: GRU hidden size ``Hd`` (the MLP head's input).
+            rnn_num_layers: Number of stacked GRU layers ``L``.
+        """
+        self.latent_dim = rnn_hidden_dim  # read by _get_latent_dim() inside MLPModel.__init__
+        # MLPModel.__init__ calls our _get_obs_dim (splits 1-D / 2-D groups), builds the normaliser over the 1-D
+        # state (S values), the distribution and the MLP head (Hd -> hidden_dims -> distribution input).
+        super().__init__(
+            obs, obs_groups, obs_set, output_dim, hidden_dims, activation, obs_normalization, distribution_cfg
+        )
+        c, h, w = self.depth_shape
+        self.encoder = DepthEncoder(
+            (h, w), c, cnn_channels, cnn_kernel_sizes, cnn_strides, cnn_max_pool, cnn_feature_dim
+        )
+        # GRU input: S state values + F image features.
+        self.rnn = RNN(self.obs_dim + cnn_feature_dim, rnn_hidden_dim, rnn_num_layers, "gru")
+
+    # ------------------------------------------------------------------------------------------------ forward
+
+    def get_latent(
+        self, obs: TensorDict, masks: torch.Tensor | None = None, hidden_state: HiddenState = None
+    ) -> torch.Tensor:
+        """GRU output for rollout mode ``(N, Hd)`` or batch mode ``(T, N_mb, Hd)`` (see the module docstring)."""
+        state = self.obs_normalizer(torch.cat([obs[g] for g in self.obs_groups], dim=-1))  # (N, S) or (T, B, S)
+        depth = obs[self.depth_group]  # (N, C, H, W) or (T, B, C, H, W)
+        if masks is None:
+            feat = self.encoder(depth)  # (N, F)
+        else:
+            # Padded chunks: encode only the valid steps (masks (T, B) True), M = masks.sum() <= T * B images;
+            # padded steps get a zero feature. They lie after each chunk's end, so the causal GRU never feeds
+            # them into a valid output, and rsl-rl's unpad_trajectories drops them.
+            feat = depth.new_zeros((*masks.shape, self.encoder.feature_dim))  # (T, B, F)
+            feat[masks] = self.encoder(depth[masks])  # (M, C, H, W) -> (M, F)
+        x = torch.cat([state, feat], dim=-1)  # (..., S + F)
+        out = self.rnn(x, masks, hidden_state)  # rollout: (1, N, Hd); batch: (T, N_mb, Hd), unpadded
+        return out.squeeze(0) if masks is None else out
+
+    # ------------------------------------------------------------------------------------------------ hidden state
+
+    def reset(self, dones: torch.Tensor | None = None, hidden_state: HiddenState = None) -> None:
+        """Zero the hidden state of envs with ``dones == 1`` (``dones`` (N,)), or set/clear all of it."""
+        self.rnn.reset(dones, hidden_state)
+
+    def get_hidden_state(self) -> HiddenState:
+        """The GRU hidden state ``(L, N, Hd)``, or ``None`` before the first step / after a full reset."""
+        return self.rnn.hidden_state  # type: ignore[return-value]
+
+    def detach_hidden_state(self, dones: torch.Tensor | None = None) -> None:
+        """Cut the graph through the hidden state (all envs, or those with ``dones == 1``)."""
+        self.rnn.detach_hidden_state(dones)
+
+    # ------------------------------------------------------------------------------------------------ export
+
+    def as_jit(self) -> nn.Module:
+        """A TorchScript-able copy, ``forward(obs, depth, h_in) -> (actions, h_out)`` (:class:`ExportedDepthGRU`)."""
+        return ExportedDepthGRU(self)
+
+    def as_onnx(self, verbose: bool = False) -> nn.Module:
+        """An ONNX-exportable copy with ``get_dummy_inputs``, ``input_names`` and ``output_names`` (rsl-rl API)."""
+        return ExportedDepthGRU(self, verbose=verbose)
+
+    # ------------------------------------------------------------------------------------------------ internals
+
+    def _get_obs_dim(self, obs: TensorDict, obs_groups: dict[str, list[str]], obs_set: str) -> tuple[list[str], int]:
+        """Split the set's groups: one 4-D image group (stored on ``self``) and the 1-D groups (returned, with S)."""
+        groups_1d: list[str] = []
+        dim_1d = 0
+        groups_2d: list[str] = []
+        for g in obs_groups[obs_set]:
+            shape = tuple(obs[g].shape)
+            if len(shape) == 4:  # (N, C, H, W)
+                groups_2d.append(g)
+            elif len(shape) == 2:  # (N, S_g)
+                groups_1d.append(g)
+                dim_1d += shape[-1]
+            else:
+                raise ValueError(f"DepthGRUModel: group '{g}' has shape {shape}; expected (N, S) or (N, C, H, W)")
+        if len(groups_2d) != 1:
+            raise ValueError(
+                f"DepthGRUModel needs exactly one image group (N, C, H, W) in '{obs_set}', got {groups_2d}"
+            )
+        if not groups_1d:
+            raise ValueError(f"DepthGRUModel needs at least one 1-D state group (N, S) in '{obs_set}'")
+        self.depth_group = groups_2d[0]
+        self.depth_shape = tuple(int(v) for v in obs[self.depth_group].shape[1:])  # (C, H, W)
+        return groups_1d, dim_1d
+
+    def _get_latent_dim(self) -> int:
+        """The MLP head reads the GRU output (Hd values)."""
+        return self.latent_dim
+
+
+class ExportedDepthGRU(nn.Module):
+    """Deterministic, stateless export of a :class:`DepthGRUModel` (TorchScript and ONNX).
+
+    ``forward(obs (B, S), depth (B, C, H, W), h_in (L, B, Hd)) -> (actions (B, A), h_out (L, B, Hd))``: the state
+    normaliser is frozen, the action is the distribution mean. The caller owns the hidden state: start from zeros
+    (``initial_state(B)``) and zero the rows of envs whose episode ended, as the training rollout does.
+    """
+
+    def __init__(self, model: DepthGRUModel, verbose: bool = False) -> None:
+        """Copy the parts of ``model`` (on the CPU) needed for inference."""
+        super().__init__()
+        self.verbose = verbose
+        self.obs_normalizer = copy.deepcopy(model.obs_normalizer).cpu()
+        self.encoder = copy.deepcopy(model.encoder).cpu()
+        self.gru = copy.deepcopy(model.rnn.rnn).cpu()  # the bare nn.GRU, no stored state
+        self.mlp = copy.deepcopy(model.mlp).cpu()
+        if model.distribution is not None:
+            self.deterministic_output = model.distribution.as_deterministic_output_module()
+        else:
+            self.deterministic_output = nn.Identity()
+        self.obs_dim = int(model.obs_dim)
+        self.depth_shape = list(model.depth_shape)
+        self.num_layers = int(self.gru.num_layers)
+        self.hidden_size = int(self.gru.hidden_size)
+        self.input_names = ["obs", model.depth_group, "h_in"]
+        """ONNX input names (rsl-rl's exporter reads them)."""
+        self.output_names = ["actions", "h_out"]
+        """ONNX output names."""
+
+    def forward(self, obs: torch.Tensor, depth: torch.Tensor, h_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One policy step for a batch of B envs; returns the actions and the next hidden state."""
+        x = torch.cat([self.obs_normalizer(obs), self.encoder(depth)], dim=-1)  # (B, S + F)
+        y, h_out = self.gru(x.unsqueeze(0), h_in)  # (1, B, Hd), (L, B, Hd)
+        return self.deterministic_output(self.mlp(y.squeeze(0))), h_out
+
+    @torch.jit.export
+    def initial_state(self, batch_size: int) -> torch.Tensor:
+        """Zero hidden state ``(L, batch_size, Hd)``."""
+        return torch.zeros(self.num_layers, batch_size, self.hidden_size)
+
+    @torch.jit.export
+    def reset(self) -> None:
+        """No-op (the state is an explicit input); kept because rsl-rl's exported policies have it."""
+        pass
+
+    @torch.jit.unused
+    def get_dummy_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Inputs for ONNX tracing: one env."""
+        return (
+            torch.zeros(1, self.obs_dim),
+            torch.zeros(1, *self.depth_shape),
+            torch.zeros(self.num_layers, 1, self.hidden_size),
+        )
+
+
+def export_policy(
+    model: DepthGRUModel, out_dir: str, jit_name: str = "policy.pt", onnx_name: str = "policy.onnx"
+) -> dict[str, str]:
+    """Write TorchScript and ONNX exports of ``model`` with a dynamic batch dimension; return their paths.
+
+    The ONNX graph has inputs ``obs (B, S)``, ``<depth group> (B, C, H, W)``, ``h_in (L, B, Hd)`` and outputs
+    ``actions (B, A)``, ``h_out (L, B, Hd)`` (opset 18, TorchScript-based exporter, which handles ``nn.GRU``).
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    jit_path = os.path.join(out_dir, jit_name)
+    onnx_path = os.path.join(out_dir, onnx_name)
+    torch.jit.script(model.as_jit()).save(jit_path)
+    exp = model.as_onnx(verbose=False)
+    exp.eval()
+    dynamic = {name: {0: "batch"} for name in exp.input_names[:-1]}
+    dynamic.update({"h_in": {1: "batch"}, "actions": {0: "batch"}, "h_out": {1: "batch"}})
+    with torch.no_grad(), warnings.catch_warnings():
+        # The exporter warns about GRU batch sizes unless h0 is a graph input; here it is (h_in).
+        warnings.filterwarnings("ignore", message=".*with a variable length with GRU.*")
+        torch.onnx.export(
+            exp,
+            exp.get_dummy_inputs(),
+            onnx_path,
+            export_params=True,
+            opset_version=18,
+            input_names=exp.input_names,
+            output_names=exp.output_names,
+            dynamic_axes=dynamic,
+            dynamo=False,
+        )
+    return {"jit": jit_path, "onnx": onnx_path}

@@ -196,10 +196,16 @@ class NavigationEnv(VectorEnv):
         obs = self._get_observations(force_all=True)
         return obs, {"critic": self._critic.copy()}
 
-    def step(self, actions: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
+    def step(
+        self, actions: np.ndarray, commands: np.ndarray | None = None
+    ) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Advance every env by one 10 ms control step.
 
         Shapes: actions (N, 4) -> obs, reward (N,), terminated (N,), truncated (N,), info.
+
+        ``commands`` (N, 4) = [f_n, phi, theta, psi], if given, are flown instead of the mapped actions (the
+        evaluation harness passes shield-corrected or baseline commands this way); the previous-action
+        observation then holds their normalised equivalent (:meth:`command_to_action`, clipped to [-1, 1]).
         """
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
@@ -209,7 +215,13 @@ class NavigationEnv(VectorEnv):
         bad = ~np.isfinite(act).all(axis=1)
         if bad.any():
             raise ValueError(f"non-finite action for env index(es) {np.flatnonzero(bad).tolist()}: {act[bad]}")
-        cmd = self._pre_physics_step(np.clip(act, -1.0, 1.0))
+        if commands is not None:
+            commands = np.asarray(commands, dtype=np.float64)
+            if commands.shape != (self.num_envs, 4) or not np.isfinite(commands).all():
+                bad = np.flatnonzero(~np.isfinite(commands).all(axis=1)).tolist() if commands.ndim == 2 else []
+                raise ValueError(f"commands must be finite with shape ({self.num_envs}, 4); bad env(s) {bad}")
+            act = np.clip(self.command_to_action(commands), -1.0, 1.0)
+        cmd = self._pre_physics_step(np.clip(act, -1.0, 1.0), commands)
         collided = self.vehicles.step(cmd)
         self.sim_time += self.cfg.vehicle.command_dt
         self._move_obstacles()
@@ -241,15 +253,19 @@ class NavigationEnv(VectorEnv):
         return obs, reward, terminated, truncated, info
 
     # ================================================================================================ step stages
-    def _pre_physics_step(self, action: np.ndarray) -> np.ndarray:
+    def _pre_physics_step(self, action: np.ndarray, commands: np.ndarray | None = None) -> np.ndarray:
         """Latency line, action -> command mapping, wind. Returns commands (N, 4)."""
         cfg = self.cfg
         hist = self.action_hist_buf
         hist[:, 1:] = hist[:, :-1]
         hist[:, 0] = action
         self.prev_exec_action_buf[:] = self.exec_action_buf
-        self.exec_action_buf[:] = hist[np.arange(self.num_envs), self.latency_buf]
-        cmd = self.action_to_command(self.exec_action_buf)
+        if commands is None:
+            self.exec_action_buf[:] = hist[np.arange(self.num_envs), self.latency_buf]
+            cmd = self.action_to_command(self.exec_action_buf)
+        else:
+            self.exec_action_buf[:] = action
+            cmd = commands.copy()
         cmd[self.frozen_buf] = np.array([cfg.vehicle.gravity, 0.0, 0.0, 0.0])
         # Gusts: Ornstein-Uhlenbeck with 1 s correlation: g += -g dt/tau + sigma sqrt(2 dt / tau) N(0, 1).
         r = cfg.randomization
@@ -271,6 +287,16 @@ class NavigationEnv(VectorEnv):
         r = self.vehicles.R_wb
         psi = np.arctan2(r[:, 1, 0], r[:, 0, 0]) + action[:, 3] * math.radians(a_cfg.yaw_range_deg)
         return np.stack((f_n, action[:, 1] * tilt, action[:, 2] * tilt, psi), axis=1)
+
+    def command_to_action(self, command: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`action_to_command` at the current headings (unclipped). (N, 4) -> (N, 4)."""
+        a_cfg, g = self.cfg.action, self.cfg.vehicle.gravity
+        f_n = command[:, 0]
+        a0 = np.where(f_n >= g, (f_n - g) / (a_cfg.thrust_max - g), (f_n - g) / (g - a_cfg.thrust_min))
+        tilt = math.radians(a_cfg.max_tilt_deg)
+        r = self.vehicles.R_wb
+        d_psi = (command[:, 3] - np.arctan2(r[:, 1, 0], r[:, 0, 0]) + np.pi) % (2 * np.pi) - np.pi
+        return np.stack((a0, command[:, 1] / tilt, command[:, 2] / tilt, d_psi / math.radians(a_cfg.yaw_range_deg)), 1)
 
     def _update_fields(self) -> None:
         """Privileged fields at the current vehicle positions (scene frame)."""
@@ -329,6 +355,7 @@ class NavigationEnv(VectorEnv):
         if len(ids):
             self.clean_depth_buf[ids] = self.camera.render(pos[ids], r_wb[ids], self.scene_id_buf[ids])
         noisy = self.noise.apply(self.clean_depth_buf, self._rng)
+        self.sensor_depth_buf = noisy  # metric depth as the sensor reports it (what the shield may use)
         depth = normalize_depth(noisy, cfg.camera)
         clean_state = self._state(pos, r_wb, self.vehicles.vel_b)
         # Policy state: observation noise on velocity and attitude.

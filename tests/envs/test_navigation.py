@@ -255,3 +255,17 @@ def test_rsl_rl_adapter_and_one_ppo_iteration(tmp_path):
     runner.learn(1)
     assert list(tmp_path.glob("events.out.tfevents*"))  # rsl-rl's tensorboard writer ran
     assert math.isfinite(float(vec.get_observations()["critic"].sum()))
+
+
+def test_command_path_round_trips_the_action_mapping():
+    env = NavigationEnv(num_envs=3, **QUIET)
+    env.reset(seed=0)
+    a = np.random.default_rng(0).uniform(-1, 1, (3, 4))
+    cmd = env.action_to_command(a)
+    # Hand-checked mapping: action 0 -> hover g; +1 -> thrust_max; -1 -> thrust_min; tilt scales linearly.
+    probe = env.action_to_command(np.array([[0.0, 0, 0, 0], [1.0, 1.0, 0, 0], [-1.0, 0, -1.0, 0]]))
+    np.testing.assert_allclose(probe[:, 0], [9.81, 25.0, 2.0])
+    np.testing.assert_allclose(probe[1:, 1:3], [[math.radians(45), 0], [0, -math.radians(45)]])
+    np.testing.assert_allclose(env.command_to_action(cmd), a, atol=1e-12)
+    env.step(a, commands=cmd)
+    np.testing.assert_allclose(env.exec_action_buf, a, atol=1e-12)

@@ -1,0 +1,482 @@
+"""Training: typed config, run folders, rsl-rl's OnPolicyRunner with checkpoints, resume, signals and exports.
+
+``train.py`` is a thin wrapper around :func:`main`. One run is::
+
+    cfg = load_train_config("configs/train/dijkstra_cbf.yaml", overrides=["runner.algorithm.learning_rate=1e-4"])
+    run_dir = train(cfg)
+
+A run lives in ``<log_root>/<experiment_name>/<YYYY-mm-dd_HH-MM-SS>_<name>/``:
+
+* ``params/config.yaml``: the resolved :class:`TrainConfig` (rebuild everything from it);
+* ``git/``: the git revision, status and diff of this repository and of rsl-rl (rsl-rl's logger writes them);
+* ``events.out.tfevents.*``: rsl-rl's scalars (losses, ``Train/mean_reward``, ``Perf/total_fps``, ...) plus the
+  env's ``extras["log"]`` under their own names (``reward/<term>``, ``episode/success``, ...);
+* ``model_<it>.pt``: rsl-rl checkpoints every ``runner.save_interval`` iterations, at the end and on interrupt,
+  whose ``infos`` hold ``format_version``, the resolved config, and the logger's step/time totals;
+* ``exported/policy.pt`` (TorchScript) and ``exported/policy.onnx``: the deterministic actor with an explicit
+  GRU state, ``(obs, depth, h_in) -> (actions, h_out)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import dataclasses
+import datetime
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from rsl_rl.env import VecEnv
+from rsl_rl.runners import OnPolicyRunner
+
+from envs.config import ConfigError, load_config, require, to_dict, to_yaml
+from envs.navigation import NavConfig
+
+CHECKPOINT_FORMAT_VERSION = 1
+"""Version of the ``infos`` layout inside ``model_<it>.pt``; bump it and add a migration when it changes."""
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+# ------------------------------------------------------------------------------------------------ config
+
+
+@dataclass
+class DistributionConfig:
+    """The actor's output distribution (rsl-rl ``distribution_cfg``)."""
+
+    class_name: str = "GaussianDistribution"
+    """rsl-rl distribution class (``GaussianDistribution``: state-independent learnable std)."""
+    init_std: float = 0.5
+    """Initial action std, in normalised action units (actions live in [-1, 1])."""
+    std_type: str = "scalar"
+    """Std parameterisation: ``scalar`` or ``log``."""
+
+
+@dataclass
+class ActorConfig:
+    """The actor model (rsl-rl ``actor`` dict); the keys are :class:`shield_nav.models.DepthGRUModel` arguments."""
+
+    class_name: str = "shield_nav.models:DepthGRUModel"
+    """Model class, ``module:Class``."""
+    hidden_dims: list[int] = field(default_factory=lambda: [128, 64])
+    """MLP head hidden sizes after the GRU."""
+    activation: str = "elu"
+    """MLP head activation (rsl-rl name)."""
+    obs_normalization: bool = True
+    """Running mean/std normalisation of the 1-D state groups (the depth image is already in [0, 1])."""
+    cnn_channels: list[int] = field(default_factory=lambda: [8, 16, 32])
+    """Output channels of each convolution."""
+    cnn_kernel_sizes: list[int] = field(default_factory=lambda: [4, 3, 3])
+    """Kernel size of each convolution."""
+    cnn_strides: list[int] = field(default_factory=lambda: [4, 1, 1])
+    """Stride of each convolution."""
+    cnn_max_pool: list[bool] = field(default_factory=lambda: [False, True, True])
+    """2 x 2 max pool after each convolution."""
+    cnn_feature_dim: int = 64
+    """Size of the visual feature f_CNN."""
+    rnn_hidden_dim: int = 128
+    """GRU hidden size."""
+    rnn_num_layers: int = 1
+    """Stacked GRU layers."""
+    distribution_cfg: DistributionConfig = field(default_factory=DistributionConfig)
+    """Output distribution."""
+
+
+@dataclass
+class CriticConfig:
+    """The critic model (rsl-rl ``critic`` dict): an MLP over the privileged group only."""
+
+    class_name: str = "MLPModel"
+    """Model class (rsl-rl's ``MLPModel``)."""
+    hidden_dims: list[int] = field(default_factory=lambda: [256, 128, 64])
+    """Hidden sizes."""
+    activation: str = "elu"
+    """Activation (rsl-rl name)."""
+    obs_normalization: bool = True
+    """Running mean/std normalisation of the critic input."""
+
+
+@dataclass
+class AlgorithmConfig:
+    """PPO hyper-parameters (rsl-rl ``algorithm`` dict)."""
+
+    class_name: str = "PPO"
+    """Algorithm class."""
+    num_learning_epochs: int = 4
+    """Passes over each rollout."""
+    num_mini_batches: int = 4
+    """Mini-batches per pass (recurrent: envs are split into this many groups; num_envs must be divisible)."""
+    clip_param: float = 0.2
+    """PPO ratio clip epsilon."""
+    gamma: float = 0.99
+    """Discount per 10 ms policy step (horizon ~ 1 / (1 - gamma) = 100 steps = 1 s)."""
+    lam: float = 0.95
+    """GAE lambda."""
+    value_loss_coef: float = 1.0
+    """Weight of the value loss."""
+    entropy_coef: float = 0.005
+    """Weight of the entropy bonus."""
+    learning_rate: float = 3.0e-4
+    """Initial Adam learning rate (adapted by the KL schedule)."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm."""
+    use_clipped_value_loss: bool = True
+    """Clip the value update like the policy ratio."""
+    schedule: str = "adaptive"
+    """``adaptive`` (learning rate follows desired_kl) or ``fixed``."""
+    desired_kl: float = 0.01
+    """Target KL for the adaptive schedule."""
+    normalize_advantage_per_mini_batch: bool = False
+    """Normalise advantages per mini-batch instead of over the whole rollout."""
+
+
+@dataclass
+class RunnerConfig:
+    """rsl-rl ``OnPolicyRunner`` train_cfg (everything but the env)."""
+
+    num_steps_per_env: int = 24
+    """Rollout length per env per iteration (also the truncated-BPTT window of the GRU)."""
+    save_interval: int = 50
+    """Write ``model_<it>.pt`` every this many iterations."""
+    obs_groups: dict[str, list[str]] = field(
+        default_factory=lambda: {"actor": ["depth", "state"], "critic": ["critic"]}
+    )
+    """Observation sets -> env observation groups."""
+    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    """PPO."""
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    """Actor model."""
+    critic: CriticConfig = field(default_factory=CriticConfig)
+    """Critic model."""
+    init_at_random_ep_len: bool = True
+    """Start the first rollout at random episode times, to decorrelate the envs."""
+    check_for_nan: bool = True
+    """Fail on NaN observations/rewards (rsl-rl check)."""
+    logger: str = "tensorboard"
+    """rsl-rl log writer (``tensorboard``)."""
+
+
+@dataclass
+class TrainConfig:
+    """One training run: the task, the learner and the bookkeeping."""
+
+    name: str = "run"
+    """Run name, the suffix of the run folder (the config files set it: ``dijkstra_cbf``, ...)."""
+    experiment_name: str = "shield_nav"
+    """Experiment folder under ``log_root``."""
+    log_root: str = "logs"
+    """Root of the run folders (``--log-dir``)."""
+    seed: int = 0
+    """Torch seed (``--seed`` sets it and ``env.seed``)."""
+    device: str = "cpu"
+    """Learner device (``cpu``, ``cuda``, ``cuda:0``); the env is CPU (numpy) either way."""
+    max_iterations: int = 1500
+    """Total PPO iterations of the run; a resumed run continues until it reaches this count."""
+    num_threads: int = 0
+    """Torch intra-op threads; 0 picks the CPUs this process may use (os.sched_getaffinity)."""
+    env: NavConfig = field(default_factory=NavConfig)
+    """The task (``envs.navigation.NavConfig``)."""
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+    """The learner."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Cross-field checks naming the key."""
+        require(self.max_iterations >= 1, f"{prefix}max_iterations", f"must be >= 1, got {self.max_iterations}")
+        require(self.num_threads >= 0, f"{prefix}num_threads", "must be >= 0")
+        require(
+            self.device == "cpu" or self.device.startswith("cuda"),
+            f"{prefix}device",
+            f"must be 'cpu' or 'cuda[:i]', got {self.device!r}",
+        )
+        r = self.runner
+        require(r.num_steps_per_env >= 1, f"{prefix}runner.num_steps_per_env", "must be >= 1")
+        require(r.save_interval >= 1, f"{prefix}runner.save_interval", "must be >= 1")
+        mb = r.algorithm.num_mini_batches
+        require(
+            mb >= 1 and self.env.num_envs % mb == 0,
+            f"{prefix}runner.algorithm.num_mini_batches",
+            f"must divide env.num_envs ({self.env.num_envs}) for the recurrent generator, got {mb}",
+        )
+        require(r.algorithm.schedule in ("adaptive", "fixed"), f"{prefix}runner.algorithm.schedule", "adaptive|fixed")
+        for key in ("actor", "critic"):
+            require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
+
+
+def load_train_config(
+    files: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+    overrides: Sequence[str] | dict | None = None,
+    base: TrainConfig | None = None,
+) -> TrainConfig:
+    """Load a :class:`TrainConfig` from YAML file(s) (with ``defaults:`` includes) and dotted overrides.
+
+    Raises:
+        ConfigError: Naming the dotted key of the first unknown key or bad value, before any work.
+    """
+    return load_config(TrainConfig, files=files, overrides=overrides, base=base)
+
+
+def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
+    """The plain ``train_cfg`` dict ``OnPolicyRunner`` takes (a fresh copy: rsl-rl may mutate it)."""
+    d = to_dict(cfg.runner)
+    d.pop("init_at_random_ep_len")
+    d["experiment_name"] = cfg.experiment_name
+    d["run_name"] = cfg.name
+    d["seed"] = cfg.seed
+    return copy.deepcopy(d)
+
+
+# ------------------------------------------------------------------------------------------------ runner
+
+
+class ShieldNavRunner(OnPolicyRunner):
+    """rsl-rl's ``OnPolicyRunner``; only ``save`` differs: every checkpoint carries versioned ``infos``."""
+
+    def __init__(self, env: VecEnv, train_cfg: dict, log_dir: str | None, device: str, config: TrainConfig) -> None:
+        """Build the stock runner; ``config`` is stored (resolved) in every checkpoint."""
+        super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+        self.config_dict = to_dict(config)
+
+    def save(self, path: str, infos: dict | None = None) -> None:
+        """Save like rsl-rl, with ``infos = {format_version, config, logger totals, versions, ...}``."""
+        full = {
+            "format_version": CHECKPOINT_FORMAT_VERSION,
+            "config": self.config_dict,
+            "tot_timesteps": int(self.logger.tot_timesteps),
+            "tot_time": float(self.logger.tot_time),
+            "torch_version": torch.__version__,
+            "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
+        }
+        full.update(infos or {})
+        super().save(path, infos=full)
+
+
+def read_checkpoint_infos(path: str | os.PathLike) -> dict:
+    """The ``infos`` of a checkpoint, migrated to the current format (raises ``ValueError`` if unknown)."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    infos = ckpt.get("infos") or {}
+    version = infos.get("format_version")
+    if version is None:
+        raise ValueError(f"{path}: no format_version in infos; not written by shield_nav.training")
+    if version > CHECKPOINT_FORMAT_VERSION:
+        raise ValueError(f"{path}: format_version {version} is newer than this code ({CHECKPOINT_FORMAT_VERSION})")
+    # Version 1 is current; future migrations go here (if version == 1: ...).
+    return infos
+
+
+class _StopTraining(Exception):
+    """Raised at an iteration boundary after SIGINT/SIGTERM."""
+
+
+class _StopFlag:
+    """SIGINT/SIGTERM handler: the first signal asks to stop after the current iteration, a second one aborts."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._old[sig] = signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt  # second signal: abort now, without saving
+        self.signum = signum
+        print(f"\n[train] {signal.Signals(signum).name}: saving a checkpoint after this iteration", flush=True)
+
+
+# ------------------------------------------------------------------------------------------------ run
+
+
+def configure_threads(num_threads: int) -> int:
+    """Set torch's intra-op threads (0: the CPUs this process may use) and one inter-op thread; return the count."""
+    n = num_threads or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    torch.set_num_threads(n)
+    with contextlib.suppress(RuntimeError):  # only allowed before the first parallel op; harmless to skip
+        torch.set_num_interop_threads(1)  # PPO has no independent ops to overlap
+    return n
+
+
+def make_env(cfg: TrainConfig) -> VecEnv:
+    """The rsl-rl VecEnv of the task (CPU, numpy inside; tensors on the learner device)."""
+    from envs.navigation import NavigationEnv
+    from envs.rsl_rl import RslRlVecEnv
+
+    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device)
+
+
+def _randomize_episode_lengths(env: VecEnv) -> None:
+    """Start each env at a uniform random time of its episode (rsl-rl's ``init_at_random_ep_len``).
+
+    Done here because rsl-rl's runner calls ``int(env.max_episode_length)``, which fails for the task's
+    per-env limits (N,); this draws ``episode_length_buf[i] ~ U{0, ..., max_episode_length[i] - 1}``.
+    """
+    limit = torch.as_tensor(env.max_episode_length, dtype=torch.float32).expand(env.num_envs)
+    env.episode_length_buf = (torch.rand(env.num_envs) * limit).long()
+
+
+def _new_run_dir(cfg: TrainConfig) -> str:
+    stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    path = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{cfg.name}")
+    os.makedirs(os.path.join(path, "params"), exist_ok=True)
+    return path
+
+
+def train(
+    cfg: TrainConfig,
+    resume: str | os.PathLike | None = None,
+    env_factory: Callable[[TrainConfig], VecEnv] = make_env,
+) -> str:
+    """Train (or resume) one run; return its folder.
+
+    Args:
+        cfg: The resolved config.
+        resume: A ``model_<it>.pt`` to continue from: weights, optimizer, normalisers and the iteration count
+            are restored, logging continues in the checkpoint's folder (tensorboard curves continue at ``it + 1``),
+            and training runs until ``cfg.max_iterations`` iterations exist in total.
+        env_factory: Builds the VecEnv from ``cfg`` (tests pass a small synthetic env).
+    """
+    rank = int(os.getenv("RANK", "0"))
+    world = int(os.getenv("WORLD_SIZE", "1"))
+    device = cfg.device
+    if world > 1:  # torchrun: one process per GPU; rsl-rl's runner initialises NCCL and averages gradients
+        if not device.startswith("cuda"):
+            raise ConfigError("config key 'device': multi-process training (WORLD_SIZE > 1) needs 'cuda'")
+        device = f"cuda:{int(os.getenv('LOCAL_RANK', '0'))}"
+    threads = configure_threads(cfg.num_threads)
+    torch.manual_seed(cfg.seed + rank)
+    print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)
+
+    if resume is not None:
+        run_dir = os.path.dirname(os.path.abspath(resume))
+    else:
+        run_dir = _new_run_dir(cfg) if rank == 0 else None
+    if rank == 0:
+        os.makedirs(os.path.join(run_dir, "params"), exist_ok=True)
+        with open(os.path.join(run_dir, "params", "config.yaml"), "w", encoding="utf-8") as f:
+            f.write(to_yaml(cfg))
+        print(f"[train] run folder: {run_dir}", flush=True)
+
+    t0 = time.perf_counter()
+    env = env_factory(dataclasses.replace(cfg, device=device))
+    print(f"[train] env: {env.num_envs} envs built in {time.perf_counter() - t0:.1f} s", flush=True)
+    runner = ShieldNavRunner(env, rsl_rl_train_cfg(cfg), log_dir=run_dir, device=device, config=cfg)
+    runner.add_git_repo_to_log(REPO_ROOT)
+
+    start_it = 0
+    if resume is not None:
+        infos = runner.load(str(resume), map_location=device) or {}
+        start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
+        runner.current_learning_iteration = start_it
+        runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))
+        runner.logger.tot_time = float(infos.get("tot_time", 0.0))
+        print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
+    remaining = cfg.max_iterations - start_it
+
+    # Stop cleanly at the next iteration boundary on SIGINT/SIGTERM: rsl-rl's logger.log runs once per iteration,
+    # right after the update, so wrapping it gives a hook without copying the runner's loop.
+    stop = _StopFlag()
+    log_fn = runner.logger.log
+
+    def log_then_check(*args: Any, **kwargs: Any) -> None:
+        log_fn(*args, **kwargs)
+        if stop.signum is not None:
+            raise _StopTraining
+
+    runner.logger.log = log_then_check  # type: ignore[method-assign]
+    interrupted = False
+    stop.install()
+    try:
+        if remaining > 0:
+            if cfg.runner.init_at_random_ep_len and resume is None:
+                _randomize_episode_lengths(env)
+            runner.learn(remaining, init_at_random_ep_len=False)
+        else:
+            print(f"[train] nothing to do: {start_it} >= max_iterations ({cfg.max_iterations})", flush=True)
+    except _StopTraining:
+        interrupted = True
+    finally:
+        stop.restore()
+
+    if rank == 0:
+        it = runner.current_learning_iteration
+        if interrupted:
+            runner.save(os.path.join(run_dir, f"model_{it}.pt"), infos={"interrupted": interrupted})
+        runner.logger.stop_logging_writer()
+        if runner.logger.writer is not None and hasattr(runner.logger.writer, "close"):
+            runner.logger.writer.close()
+        from shield_nav.models import export_policy
+
+        paths = export_policy(runner.alg.get_policy(), os.path.join(run_dir, "exported"))
+        print(f"[train] exported {paths['jit']} and {paths['onnx']}", flush=True)
+        print(f"[train] {'interrupted' if interrupted else 'finished'} at iteration {it}: {run_dir}", flush=True)
+    if interrupted:
+        raise SystemExit(128 + int(stop.signum or signal.SIGINT))
+    return run_dir
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``train.py`` argument parser."""
+    p = argparse.ArgumentParser(prog="train.py", description="Train the depth CNN+GRU policy with rsl-rl PPO.")
+    p.add_argument("--config", help="configs/train/<name>.yaml (required unless --resume)")
+    p.add_argument("--set", nargs="+", default=[], metavar="A.B=V", help="dotted overrides, e.g. env.num_envs=32")
+    p.add_argument("--num-envs", type=int, help="shorthand for --set env.num_envs=N")
+    p.add_argument("--max-iterations", type=int, help="total iterations of the run")
+    p.add_argument("--seed", type=int, help="sets seed and env.seed")
+    p.add_argument("--device", help="cpu | cuda | cuda:i")
+    p.add_argument("--log-dir", help="root of the run folders (default: logs)")
+    p.add_argument("--resume", help="model_<it>.pt to continue (its run folder and stored config are reused)")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
+    overrides = list(args.set)
+    if args.num_envs is not None:
+        overrides.append(f"env.num_envs={args.num_envs}")
+    if args.max_iterations is not None:
+        overrides.append(f"max_iterations={args.max_iterations}")
+    if args.seed is not None:
+        overrides += [f"seed={args.seed}", f"env.seed={args.seed}"]
+    if args.device is not None:
+        overrides.append(f"device={args.device}")
+    if args.log_dir is not None:
+        overrides.append(f"log_root={args.log_dir}")
+    if args.resume is not None:
+        if not os.path.isfile(args.resume):
+            raise ConfigError(f"--resume: '{args.resume}' is not a file")
+        if args.config is not None:
+            print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
+        stored = read_checkpoint_infos(args.resume)["config"]
+        return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
+    if args.config is None:
+        raise ConfigError("--config is required (or --resume)")
+    return load_train_config(files=args.config, overrides=overrides)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python train.py ...``: parse, resolve the config (failing fast on bad keys), train."""
+    args = build_parser().parse_args(argv)
+    try:
+        cfg = config_from_args(args)
+    except (ConfigError, ValueError) as err:
+        print(f"train.py: error: {err}", file=sys.stderr)
+        return 2
+    train(cfg, resume=args.resume)
+    return 0

@@ -1,0 +1,9 @@
+"""Train the depth CNN+GRU policy with rsl-rl PPO: ``python train.py --config configs/train/<name>.yaml [...]``.
+
+See ``python train.py --help`` and docs/training.md. The logic lives in :mod:`shield_nav.training`.
+"""
+
+from shield_nav.training import main
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,113 @@
+"""train.py end to end (subprocess, the real task with 4 envs on 2 scenes): run folder, resume, bad keys, SIGTERM."""
+
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from shield_nav.training import CHECKPOINT_FORMAT_VERSION, read_checkpoint_infos
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+TINY = ["--config", "configs/train/quick.yaml", "--num-envs", "4", "--set", "runner.num_steps_per_env=8"]
+
+
+def run_train(args, timeout=240):
+    return subprocess.run(
+        [sys.executable, "train.py", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def only_run_dir(root):
+    runs = [os.path.join(root, "quick", d) for d in os.listdir(os.path.join(root, "quick"))]
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def scalar_steps(run_dir, tag):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(run_dir)
+    acc.Reload()
+    return sorted({e.step for e in acc.Scalars(tag)})
+
+
+def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_path):
+    root = str(tmp_path / "logs")
+    res = run_train([*TINY, "--max-iterations", "2", "--log-dir", root])
+    assert res.returncode == 0, res.stderr[-3000:]
+    run = only_run_dir(root)
+    files = set(os.listdir(run))
+    assert {"params", "git", "exported", "model_0.pt", "model_1.pt"} <= files
+    assert any(f.startswith("events.out.tfevents") for f in files)
+    assert os.path.isfile(os.path.join(run, "params", "config.yaml"))
+    assert os.listdir(os.path.join(run, "git"))  # revision + diff of this repository
+    assert scalar_steps(run, "Loss/value") == [0, 1]
+    assert scalar_steps(run, "reward/navigation") == [0, 1]  # the env's extras["log"] reached tensorboard
+    infos = read_checkpoint_infos(os.path.join(run, "model_1.pt"))
+    assert infos["format_version"] == CHECKPOINT_FORMAT_VERSION
+    assert infos["config"]["env"]["num_envs"] == 4 and infos["config"]["name"] == "quick"
+    assert torch.load(os.path.join(run, "model_1.pt"), weights_only=False)["iter"] == 1
+
+    # The exported actor runs in onnxruntime on the env's shapes with an explicit GRU state.
+    sess = ort.InferenceSession(os.path.join(run, "exported", "policy.onnx"), providers=["CPUExecutionProvider"])
+    state_dim = sess.get_inputs()[0].shape[1]
+    h = np.zeros((1, 2, 128), np.float32)
+    act, h = sess.run(
+        None, {"obs": np.zeros((2, state_dim), np.float32), "depth": np.ones((2, 1, 60, 100), np.float32), "h_in": h}
+    )
+    assert act.shape == (2, 4) and np.isfinite(act).all() and h.shape == (1, 2, 128)
+
+    # Resume: same folder, iteration count and curves continue at 2.
+    res = run_train(["--resume", os.path.join(run, "model_1.pt"), "--max-iterations", "3"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "continuing at iteration 2" in res.stdout
+    assert only_run_dir(root) == run
+    ckpt = torch.load(os.path.join(run, "model_2.pt"), weights_only=False)
+    assert ckpt["iter"] == 2
+    assert ckpt["infos"]["tot_timesteps"] == 3 * 4 * 8  # 3 iterations x 4 envs x 8 steps, across both processes
+    assert scalar_steps(run, "Loss/value") == [0, 1, 2]
+
+
+def test_bad_config_key_fails_fast_with_the_key_path(tmp_path):
+    root = str(tmp_path / "logs")
+    res = run_train([*TINY, "--set", "env.reward.navigaton=geodesic", "--log-dir", root], timeout=120)
+    assert res.returncode == 2
+    assert "env.reward.navigaton" in res.stderr
+    assert not os.path.exists(root)  # nothing was built or written
+    res = run_train([*TINY, "--set", "runner.algorithm.num_mini_batches=3", "--log-dir", root], timeout=120)
+    assert res.returncode == 2 and "runner.algorithm.num_mini_batches" in res.stderr
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_sigterm_saves_a_checkpoint_and_exports(tmp_path):
+    root = str(tmp_path / "logs")
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "train.py", *TINY, "--max-iterations", "10000", "--log-dir", root],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if "Learning iteration 0/" in line:
+                proc.send_signal(signal.SIGTERM)
+                break
+        out = proc.communicate(timeout=180)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, "".join(lines) + out
+    run = only_run_dir(root)
+    saved = sorted(f for f in os.listdir(run) if f.startswith("model_"))
+    last = max(saved, key=lambda f: int(f[6:-3]))
+    infos = read_checkpoint_infos(os.path.join(run, last))
+    assert infos["interrupted"] is True
+    assert os.path.isfile(os.path.join(run, "exported", "policy.onnx"))

@@ -47,8 +47,9 @@ class EpisodeConfig:
     """Initial forward speed as a fraction [lo, hi] of the target speed, sampled uniformly."""
     timeout_factor: float = 2.5
     """Time limit = timeout_factor * straight-line distance / target speed + 5 s."""
-    out_of_bounds_margin: float = 1.0
-    """The episode ends when the vehicle leaves the scene bounds by more than this in x or y [m]."""
+    out_of_bounds_margin: float = 3.0
+    """The episode ends when the vehicle leaves the scene bounds by more than this in x or y [m] (starts are at
+    the x = 0 edge, so a smaller margin ends exploratory episodes that drift backwards almost at once)."""
 
 
 @dataclass

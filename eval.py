@@ -1,0 +1,62 @@
+"""Evaluate policies and baselines on the paper's scenes: ``python eval.py [--config configs/eval/<name>.yaml] ...``.
+
+Thin entry point: argument parsing only; the harness is :mod:`shield_nav.evaluation` (see docs/evaluation.md).
+With no arguments it runs ``configs/eval/default.yaml`` (a short ablation subset) and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+DEFAULT_CONFIG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "configs", "eval", "default.yaml")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface (DESIGN.md)."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=DEFAULT_CONFIG, help="eval config YAML (default: configs/eval/default.yaml)")
+    p.add_argument(
+        "--checkpoint",
+        action="append",
+        default=[],
+        metavar="NAME=PATH",
+        help="policy checkpoint (exported policy.onnx/.pt or its folder); repeatable",
+    )
+    p.add_argument("--speeds", help="comma-separated target speeds, e.g. 3,5,7,9")
+    p.add_argument("--trials", type=int, help="trials per (configuration, scene, speed)")
+    p.add_argument("--scenes", help="FAMILY or FAMILY:INDICES (e.g. ablation:0,3 or benchmark:0-5)")
+    p.add_argument("--configurations", help="comma-separated rows (e.g. full,oracle,reactive)")
+    p.add_argument("--workers", type=int, help="parallel worker processes")
+    p.add_argument("--out", help="output folder (default eval_out/<config name>); re-running resumes it")
+    p.add_argument("--seed", type=int, help="trial sampling seed")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="dotted eval-config override")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse, build the config, run, print the table. Bad input exits with status 2 and one clear line."""
+    from shield_nav.evaluation import ConfigError, EvalError, config_from_args, evaluate
+
+    args = build_parser().parse_args(argv)
+    try:
+        cfg, explicit = config_from_args(args)
+        out = args.out or os.path.join("eval_out", cfg.name)
+        summary = evaluate(cfg, out, explicit, progress=not args.no_progress, argv=sys.argv)
+    except (EvalError, ConfigError) as err:
+        print(f"eval.py: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    print()
+    print("\n".join(summary["header"]))
+    print()
+    print(summary["paper_table"])
+    print(f"\nwritten to {out}/ (table.md, table.csv, table.tex, trials.json, summary.json, figures/)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

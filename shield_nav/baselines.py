@@ -1,0 +1,310 @@
+"""Baseline controllers that need no learned weights, run through the same evaluation harness as the policies.
+
+Every controller maps the env's current state to vehicle commands ``[f_n, phi, theta, psi]`` (N, 4), which the
+harness flies with ``env.step(actions, commands=...)`` (after the HOCBF shield where a row asks for it):
+
+* :class:`OracleController`: follows the descent of the privileged geodesic (Dijkstra) field with a velocity
+  tracking controller and an ESDF repulsion. It reads the map, so it is **privileged**: an upper bound for what a
+  reactive policy flying the same vehicle could do, not a fair competitor.
+* :class:`ReactivePlanner`: a classical depth-only planner. It back-projects the current depth image to a point
+  cloud, scores a fan of straight motion primitives for collision (free distance along each) and goal progress,
+  flies the best at a speed it can stop within, and brakes and turns when nothing is free.
+* :class:`GoalSeeker`: flies straight at the goal at the target speed. Alone it measures how cluttered a scene is;
+  with the shield ("shield only") it isolates what the HOCBF filter achieves without a learned policy.
+
+All three share :func:`accel_to_command`, which turns a desired world-frame acceleration into a flyable command
+with the shield's acceleration model ``a = f_n R(phi, theta, psi) e3 - g e3`` (drag neglected).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from envs.camera import depth_to_points
+from envs.config import require
+from shield_nav.shield import command_from_accel
+
+
+@dataclass
+class TrackingConfig:
+    """Velocity tracking shared by the baselines: a = k_v (v_des - v), clipped to a flyable thrust vector."""
+
+    k_v: float = 2.5
+    """Velocity gain [1/s]."""
+    max_tilt_deg: float = 40.0
+    """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50 deg)."""
+    thrust_range: list[float] = field(default_factory=lambda: [2.0, 25.0])
+    """Mass-normalised thrust range [m/s^2] (the policies' action range)."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Positive gain, sane limits."""
+        require(self.k_v > 0, f"{prefix}k_v", "must be > 0")
+        require(0 < self.max_tilt_deg < 60, f"{prefix}max_tilt_deg", "must be in (0, 60)")
+        require(0 < self.thrust_range[0] < self.thrust_range[1], f"{prefix}thrust_range", "must be 0 < lo < hi")
+
+
+@dataclass
+class OracleConfig:
+    """Privileged geodesic-descent oracle."""
+
+    lookahead_s: float = 0.3
+    """The descent direction is read at p + v * lookahead_s (anticipates turns) [s]."""
+    repulse_dist: float = 0.8
+    """ESDF below which a repulsion along grad(ESDF) is added [m]."""
+    repulse_gain: float = 3.0
+    """Repulsion velocity per metre of ESDF deficit [1/s]."""
+    slow_dist: float = 0.6
+    """Speed is scaled by clip(ESDF_ahead / slow_dist, min_speed_fraction, 1) [m]."""
+    min_speed_fraction: float = 0.5
+    """Lower bound of that speed scale."""
+    fd_step: float = 0.2
+    """Central-difference step of the geodesic gradient [m]."""
+    goal_switch: float = 3.0
+    """Below this geodesic distance to the goal region, fly straight at the goal point instead [m]. (The field
+    flows to the whole 1 x 32 m goal box; success needs the goal point within 5 m.)"""
+
+
+@dataclass
+class ReactiveConfig:
+    """Depth-only motion-primitive planner."""
+
+    azimuths_deg: list[float] = field(default_factory=lambda: [-40, -30, -20, -12, -6, 0, 6, 12, 20, 30, 40])
+    """Primitive directions relative to the current heading [deg] (inside the camera's 87 deg field of view)."""
+    elevations_deg: list[float] = field(default_factory=lambda: [-12.0, 0.0, 12.0])
+    """Primitive climb angles [deg]."""
+    horizon: float = 8.0
+    """Primitive length [m] (free distances are capped here)."""
+    collision_radius: float = 0.5
+    """A point closer than this to a primitive's line blocks it [m] (vehicle 0.2 m + margin)."""
+    min_free: float = 1.5
+    """Primitives whose free distance is shorter than this are rejected [m]."""
+    brake_accel: float = 5.0
+    """Deceleration used for the stop-within-free-distance speed rule v = sqrt(2 a (free - stop_margin)) [m/s^2]."""
+    stop_margin: float = 1.0
+    """Distance kept in reserve by that rule [m]."""
+    w_goal: float = 1.0
+    """Weight of goal alignment cos(angle(d, goal)) in the score."""
+    w_free: float = 0.6
+    """Weight of the free distance (normalised by the horizon) in the score."""
+    w_smooth: float = 0.2
+    """Weight of the change from the previous primitive (|d - d_prev|) in the score (a penalty)."""
+    voxel: float = 0.2
+    """Point cloud voxel edge [m]."""
+    replan_every: int = 5
+    """Replan every this many control steps (20 Hz at 100 Hz control); the chosen primitive is held in between."""
+    search_turn_deg: float = 35.0
+    """When no primitive is free: brake and turn the heading by this much towards the goal side [deg]."""
+
+
+@dataclass
+class BaselineConfig:
+    """Parameters of every baseline."""
+
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    """Velocity tracking."""
+    oracle: OracleConfig = field(default_factory=OracleConfig)
+    """Geodesic oracle."""
+    reactive: ReactiveConfig = field(default_factory=ReactiveConfig)
+    """Reactive depth planner."""
+
+
+def accel_to_command(accel_w: np.ndarray, psi: np.ndarray, cfg: TrackingConfig, gravity: float = 9.81) -> np.ndarray:
+    """Flyable command (N, 4) for desired accelerations (N, 3) and yaws (N,).
+
+    Thrust vector T = a + g e3. Vertical priority: T_z is clipped to [thrust_lo, thrust_hi], the horizontal part
+    to |T_xy| <= T_z tan(max_tilt), then T is scaled down to |T| <= thrust_hi. The command follows from T with
+    the shield's inverse model (:func:`shield_nav.shield.command_from_accel`).
+    """
+    lo, hi = cfg.thrust_range
+    t = np.asarray(accel_w, dtype=np.float64) + np.array([0.0, 0.0, gravity])
+    t[:, 2] = np.clip(t[:, 2], lo, hi)
+    h = np.linalg.norm(t[:, :2], axis=1)
+    cap = t[:, 2] * math.tan(math.radians(cfg.max_tilt_deg))
+    scale = np.where(h > cap, cap / np.maximum(h, 1e-12), 1.0)
+    t[:, :2] *= scale[:, None]
+    norm = np.linalg.norm(t, axis=1)
+    t *= np.minimum(1.0, hi / np.maximum(norm, 1e-12))[:, None]
+    return command_from_accel(t - np.array([0.0, 0.0, gravity]), np.asarray(psi, dtype=np.float64), gravity)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def _heading(r_wb: np.ndarray) -> np.ndarray:
+    """Yaw (N,) of body-to-world rotations (N, 3, 3) (ZYX convention: psi = atan2(R10, R00))."""
+    return np.arctan2(r_wb[:, 1, 0], r_wb[:, 0, 0])
+
+
+class Controller:
+    """Interface: ``reset(env)`` at the start of a batch of trials, ``commands(env)`` each control step."""
+
+    privileged: bool = False
+    """Whether the controller reads privileged map information (the table labels such rows)."""
+
+    def reset(self, env: Any) -> None:
+        """Start a new batch of trials in ``env``."""
+
+    def commands(self, env: Any) -> np.ndarray:
+        """Commands (N, 4) = [f_n, phi, theta, psi] for every env (frozen envs are ignored by the env)."""
+        raise NotImplementedError
+
+
+class GoalSeeker(Controller):
+    """Straight to the goal at the target speed: v_des = v_target (g - p) / |g - p|, yaw towards the goal."""
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        self.cfg = cfg
+
+    def commands(self, env: Any) -> np.ndarray:  # noqa: D102
+        pos, vel = env.local_pos, env.vehicles.vel_w
+        to_goal = env.goal_buf - pos
+        v_des = _unit(to_goal) * env.target_speed_buf[:, None]
+        a = self.cfg.tracking.k_v * (v_des - vel)
+        psi = np.arctan2(to_goal[:, 1], to_goal[:, 0])
+        return accel_to_command(a, psi, self.cfg.tracking, env.cfg.vehicle.gravity)
+
+
+class OracleController(Controller):
+    """Privileged: descend the geodesic field Phi (distance to the goal region around obstacles).
+
+    v_des = s * v_target * (-grad Phi / |grad Phi|) at the look-ahead point q = p + v * lookahead, plus the
+    repulsion k (d_rep - d(p)) grad d(p) where the ESDF d(p) < d_rep; the speed scale
+    s = clip(d(q) / slow_dist, s_min, 1) slows down where the look-ahead point is tight. grad Phi is a central
+    difference with step h: (Phi(q + h e_i) - Phi(q - h e_i)) / 2h. Within ``goal_switch`` of the goal region
+    (Phi(p) small) the direction becomes (g - p) / |g - p|: Phi is 0 on the whole goal box, the goal is a point.
+    """
+
+    privileged = True
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        self.cfg = cfg
+
+    def commands(self, env: Any) -> np.ndarray:  # noqa: D102
+        oc = self.cfg.oracle
+        pos, vel = env.local_pos, env.vehicles.vel_w
+        n = len(pos)
+        ids = env.scene_id_buf
+        q = pos + vel * oc.lookahead_s
+        h = oc.fd_step
+        offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
+        pts = (q[:, None, :] + offsets[None]).reshape(-1, 3)
+        phi = env.field_stack.geodesic(np.repeat(ids, 6), pts).reshape(n, 6)
+        grad_phi = (phi[:, :3] - phi[:, 3:]) / (2 * h)
+        # Points just past the goal region (x beyond the scene) read Phi(clamped) + outside: still descend to goal.
+        d_now, g_now, _ = env.field_stack.query(ids, pos, geodesic=False)
+        d_ahead = env.field_stack.esdf(ids, q)
+        scale = np.clip(d_ahead / oc.slow_dist, oc.min_speed_fraction, 1.0)
+        direction = -_unit(grad_phi)
+        near = env.field_stack.geodesic(ids, pos) < oc.goal_switch
+        direction[near] = _unit(env.goal_buf[near] - pos[near])
+        v_des = direction * (scale * env.target_speed_buf)[:, None]
+        deficit = np.maximum(oc.repulse_dist - d_now, 0.0)
+        v_des += oc.repulse_gain * deficit[:, None] * _unit(g_now)
+        a = self.cfg.tracking.k_v * (v_des - vel)
+        psi = np.arctan2(v_des[:, 1], v_des[:, 0])
+        return accel_to_command(a, psi, self.cfg.tracking, env.cfg.vehicle.gravity)
+
+
+def free_distances(points: np.ndarray, origin: np.ndarray, dirs: np.ndarray, radius: float, cap: float) -> np.ndarray:
+    """Free distance along each unit direction before a point comes within ``radius`` of the ray.
+
+    For a point at r = o_pt - origin, the along-ray distance is s = r.d and the squared distance to the ray's line
+    is e^2 = |r|^2 - s^2. The ray p(t) = origin + t d first comes within ``radius`` of the point at
+    t = s - sqrt(radius^2 - e^2) (if e < radius and that t is ahead). A point already within ``radius`` of the
+    origin and ahead (s > 0) blocks at t = 0. Returns (K,) distances, capped at ``cap``.
+    """
+    if len(points) == 0:
+        return np.full(len(dirs), cap)
+    r = points - origin  # (M, 3)
+    s = r @ dirs.T  # (M, K)
+    e2 = np.einsum("ij,ij->i", r, r)[:, None] - s * s
+    hit = (e2 < radius * radius) & (s > 0)
+    t = s - np.sqrt(np.maximum(radius * radius - e2, 0.0))
+    t = np.where(hit, np.maximum(t, 0.0), cap)
+    return np.minimum(t.min(axis=0), cap)
+
+
+class ReactivePlanner(Controller):
+    """Depth-only motion-primitive planner (see the module docstring); no map, no memory beyond one frame.
+
+    Each replan: points P from the sensor depth image; K primitive directions d_k (heading-relative azimuth and
+    elevation); free distance f_k (:func:`free_distances`); score
+    ``w_goal cos(d_k, goal) + w_free min(f_k, H) / H - w_smooth |d_k - d_prev|`` over primitives with
+    f_k >= min_free. The speed along the best one obeys v = min(v_target, sqrt(2 a_brake max(f - margin, 0))), so
+    the vehicle can always stop short of what it sees. With no free primitive it brakes (v_des = 0) and turns its
+    heading towards the goal side to look for a gap. Yaw follows the chosen direction, so the camera looks where
+    the vehicle flies.
+    """
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        self.cfg = cfg
+        rc = cfg.reactive
+        az, el = np.meshgrid(np.radians(rc.azimuths_deg), np.radians(rc.elevations_deg), indexing="ij")
+        self._az = az.reshape(-1)
+        self._el = el.reshape(-1)
+        self._v_des: np.ndarray | None = None
+        self._psi: np.ndarray | None = None
+        self._step = 0
+
+    def reset(self, env: Any) -> None:  # noqa: D102
+        n = env.num_envs
+        self._v_des = np.zeros((n, 3))
+        self._psi = _heading(env.vehicles.R_wb).copy()
+        self._dir = np.zeros((n, 3))
+        self._step = 0
+
+    def _plan(self, env: Any, i: int) -> None:
+        rc = self.cfg.reactive
+        pos = env.local_pos[i]
+        r_wb = env.vehicles.R_wb[i]
+        psi0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
+        pts = depth_to_points(env.sensor_depth_buf[i], pos, r_wb, env.cfg.camera, rc.voxel or None)
+        a = psi0 + self._az
+        dirs = np.stack((np.cos(a) * np.cos(self._el), np.sin(a) * np.cos(self._el), np.sin(self._el)), axis=1)
+        free = free_distances(pts, pos, dirs, rc.collision_radius, rc.horizon)
+        to_goal = _unit(env.goal_buf[i] - pos)
+        score = rc.w_goal * (dirs @ to_goal) + rc.w_free * free / rc.horizon
+        score -= rc.w_smooth * np.linalg.norm(dirs - self._dir[i], axis=1)
+        # Keep inside the flight volume: no climbing within 0.4 m of the ceiling, no descending near the floor.
+        lo, hi = env.scenes[env.scene_id_buf[i]].bounds_lo, env.scenes[env.scene_id_buf[i]].bounds_hi
+        score[(dirs[:, 2] > 0) & (pos[2] > hi[2] - 0.6)] = -np.inf
+        score[(dirs[:, 2] < 0) & (pos[2] < lo[2] + 0.6)] = -np.inf
+        score[free < rc.min_free] = -np.inf
+        k = int(np.argmax(score))
+        if not np.isfinite(score[k]):
+            # Nothing free: brake, and turn towards the goal's side to look for a gap.
+            side = math.copysign(1.0, math.sin(math.atan2(to_goal[1], to_goal[0]) - psi0) or 1.0)
+            self._v_des[i] = 0.0
+            self._psi[i] = psi0 + side * math.radians(rc.search_turn_deg)
+            self._dir[i] = 0.0
+            return
+        v = min(float(env.target_speed_buf[i]), math.sqrt(2 * rc.brake_accel * max(free[k] - rc.stop_margin, 0.0)))
+        self._v_des[i] = dirs[k] * v
+        self._psi[i] = a[k]
+        self._dir[i] = dirs[k]
+
+    def commands(self, env: Any) -> np.ndarray:  # noqa: D102
+        if self._v_des is None:
+            self.reset(env)
+        if self._step % self.cfg.reactive.replan_every == 0:
+            for i in np.flatnonzero(~env.frozen_buf):
+                self._plan(env, int(i))
+        self._step += 1
+        a = self.cfg.tracking.k_v * (self._v_des - env.vehicles.vel_w)
+        return accel_to_command(a, self._psi, self.cfg.tracking, env.cfg.vehicle.gravity)
+
+
+BASELINES = {"oracle": OracleController, "reactive": ReactivePlanner, "goal": GoalSeeker}
+"""Baseline controllers by the ``controller`` name a row uses."""
+
+
+def make_baseline(kind: str, cfg: BaselineConfig) -> Controller:
+    """The baseline controller ``kind`` (one of :data:`BASELINES`)."""
+    if kind not in BASELINES:
+        raise ValueError(f"unknown baseline controller {kind!r}; known: {sorted(BASELINES)}")
+    return BASELINES[kind](cfg)

@@ -126,6 +126,22 @@ def command_from_accel(accel: np.ndarray, psi: np.ndarray, gravity: float = 9.81
 
 
 @nb.njit(cache=True, nogil=True)
+def _accel_from_command_1(f_n: float, phi: float, theta: float, psi: float, g: float, out: np.ndarray) -> None:
+    """Scalar :func:`accel_from_command` into ``out`` (3,): a = f_n R(phi, theta, psi) e3 - g e3."""
+    cf, sf, ct, st, cp, sp = (
+        math.cos(phi),
+        math.sin(phi),
+        math.cos(theta),
+        math.sin(theta),
+        math.cos(psi),
+        math.sin(psi),
+    )
+    out[0] = f_n * (cp * st * cf + sp * sf)
+    out[1] = f_n * (sp * st * cf - cp * sf)
+    out[2] = f_n * ct * cf - g
+
+
+@nb.njit(cache=True, nogil=True)
 def _command_from_accel_1(ax: float, ay: float, az: float, psi: float, g: float) -> tuple[float, float, float]:
     """Scalar :func:`command_from_accel` for one vehicle: returns (f_n, phi, theta)."""
     tx, ty, tz = ax, ay, az + g
@@ -171,6 +187,7 @@ def _select(
     k_max: int,
     out_r: np.ndarray,
     out_b: np.ndarray,
+    out_min: np.ndarray,
 ) -> int:
     """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
 
@@ -178,7 +195,8 @@ def _select(
     i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). Points are binned by
     the azimuth/elevation of o - p; each bin keeps its smallest margin, and the k_max smallest bins are written to
     out_r (k_max, 3) in increasing margin order, with their HOCBF right-hand sides b (see ``hocbf_rows``) in
-    out_b. Returns how many were written.
+    out_b, and the smallest margin in out_min[0] (negative: the raw command violates a selected row, so the shield
+    must act). Returns how many were written.
     """
     n_sec = n_az * n_el
     best_m = np.full(n_sec, np.inf)
@@ -208,6 +226,7 @@ def _select(
             best_m[s] = m
             best_i[s] = i
     order = np.argsort(best_m)
+    out_min[0] = best_m[order[0]]
     n = 0
     for j in range(min(k_max, n_sec)):
         s = order[j]
@@ -265,6 +284,8 @@ class HOCBFShield:
         self.camera = camera if camera is not None else CameraConfig()
         self._r_buf = np.zeros((cfg.max_constraints, 3))
         self._b_buf = np.zeros(cfg.max_constraints)
+        self._min_buf = np.zeros(1)
+        self._a_buf = np.zeros(3)
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
@@ -323,6 +344,7 @@ class HOCBFShield:
             pts, np.asarray(pos_w, dtype=np.float64), np.asarray(vel_w, dtype=np.float64),
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
             c.point_filter[1], c.azimuth_sectors, c.elevation_sectors, c.max_constraints, self._r_buf, self._b_buf,
+            self._min_buf,
         )  # fmt: skip
         r = self._r_buf[:n].copy()
         return r, 2.0 * r, self._b_buf[:n].copy()
@@ -399,8 +421,9 @@ class HOCBFShield:
             bad = np.flatnonzero(~np.isfinite(cmd).all(axis=1)).tolist()
             raise ValueError(f"non-finite command for vehicle index(es) {bad}")
         out_cmd = cmd.copy()
-        a_raw = accel_from_command(cmd, self.cfg.gravity)
-        a_safe = a_raw.copy()
+        g = self.cfg.gravity
+        a_raw = np.empty((num, 3))
+        a_safe = np.empty((num, 3))
         active = np.zeros(num, dtype=bool)
         status = np.zeros(num, dtype=np.int64)
         ncon = np.zeros(num, dtype=np.int64)
@@ -408,17 +431,22 @@ class HOCBFShield:
         solve_us = np.zeros(num)
         total_us = np.zeros(num)
         for i in range(num):
+            # Everything a deployed vehicle would run per control step is inside the timed region.
             t0 = time.perf_counter()
+            _accel_from_command_1(cmd[i, 0], cmd[i, 1], cmd[i, 2], cmd[i, 3], g, self._a_buf)
+            a_raw[i] = self._a_buf
             if depth is not None:
                 pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel or None)
             else:
                 pts = points_w[i]
-            _, a_mat, b_vec = self.constraints(pts, pos_w[i], vel_w[i], a_raw[i])
+            _, a_mat, b_vec = self.constraints(pts, pos_w[i], vel_w[i], self._a_buf)
             ncon[i] = len(b_vec)
-            if len(b_vec) and np.any(a_mat @ a_raw[i] < b_vec):
+            if len(b_vec) and self._min_buf[0] < 0.0:  # smallest margin A a_raw - b < 0: a row is violated
                 a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
                 a_safe[i] = a_star
-                out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], cmd[i, 3], self.cfg.gravity)
+                out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], cmd[i, 3], g)
                 active[i] = True
+            else:
+                a_safe[i] = a_raw[i]
             total_us[i] = 1e6 * (time.perf_counter() - t0)
         return ShieldOutput(out_cmd, a_raw, a_safe, active, status, ncon, slack, solve_us, total_us)

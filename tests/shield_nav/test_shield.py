@@ -69,6 +69,9 @@ def test_accel_command_round_trip_is_identity():
         accel_from_command(np.array([[G / math.cos(0.3), 0, 0.3, 0]])), [[G * math.tan(0.3), 0, 0]], atol=1e-12
     )
     np.testing.assert_allclose(command_from_accel(a, cmd[:, 3]), cmd, atol=1e-10)
+    # The shield's per-vehicle scalar kernel computes the same a_raw as the batched function.
+    out = HOCBFShield().filter(cmd, np.zeros((50, 3)), np.zeros((50, 3)), points_w=[np.zeros((0, 3))] * 50)
+    np.testing.assert_allclose(out.accel_raw, a, atol=1e-12)
 
 
 def test_single_active_constraint_is_the_closed_form_half_space_projection():

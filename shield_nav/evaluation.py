@@ -241,6 +241,9 @@ class PolicyInfo:
     """The resolved training config found next to the checkpoint, if any."""
     train_speeds: tuple[float, float] | None
     """Target-speed range [lo, hi] the policy was trained for (from that config), if known."""
+    train_env: dict | None = None
+    """The ``action``, ``camera`` and ``vehicle`` sections of the training env config (evaluation flies the policy
+    with these, so its actions mean what they meant in training), if found."""
 
 
 class LoadedPolicy:
@@ -338,6 +341,26 @@ def _speeds_from_config(path: str | None) -> tuple[float, float] | None:
     return None
 
 
+POLICY_ENV_SECTIONS = ("action", "camera", "vehicle")
+"""Env config sections taken from a policy's training config when it is evaluated."""
+
+
+def _env_from_config(path: str | None) -> dict | None:
+    """The :data:`POLICY_ENV_SECTIONS` of the ``env`` mapping of a resolved training config (TrainConfig layout)."""
+    if path is None:
+        return None
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+    except Exception:
+        return None
+    env = data.get("env") if isinstance(data, dict) else None
+    if not isinstance(env, dict):
+        return None
+    out = {k: env[k] for k in POLICY_ENV_SECTIONS if isinstance(env.get(k), dict)}
+    return out or None
+
+
 def _dim(value: Any, what: str, path: str) -> int:
     if not isinstance(value, int):
         raise EvalError(f"policy {path!r}: {what} has no fixed size ({value!r}); cannot check the layout")
@@ -357,6 +380,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
     file = _find_policy_file(os.fspath(path), name)
     cfg_path = _find_train_config(file)
     speeds = _speeds_from_config(cfg_path)
+    train_env = _env_from_config(cfg_path)
     if file.endswith(".onnx"):
         import onnxruntime as ort
 
@@ -382,7 +406,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
         names = {"obs": by_rank[2].name, "depth": by_rank[4].name, "h_in": by_rank[3].name,
                  "actions": outs[2].name, "h_out": outs[3].name}  # fmt: skip
         info = PolicyInfo(name, file, "onnx", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
-                          cfg_path, speeds)  # fmt: skip
+                          cfg_path, speeds, train_env)  # fmt: skip
         return LoadedPolicy(info, sess, names)
     import torch
 
@@ -400,7 +424,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
         raise EvalError(f"checkpoint {name!r}: {file!r} lacks obs_dim/depth_shape/num_layers/hidden_size") from None
     mod.eval()
     info = PolicyInfo(name, file, "torchscript", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
-                      cfg_path, speeds)  # fmt: skip
+                      cfg_path, speeds, train_env)  # fmt: skip
     return LoadedPolicy(info, mod)
 
 
@@ -543,10 +567,17 @@ class UnitSpec:
     speed: float
     cfg: dict
     policy_path: str | None
+    policy_env: dict | None = None
 
 
-def nav_config(cfg: EvalConfig, family: str, index: int, speed: float, n: int) -> NavConfig:
-    """The env config of a unit batch: the eval's env_overrides, one scene, one speed, no curriculum/autoreset."""
+def nav_config(
+    cfg: EvalConfig, family: str, index: int, speed: float, n: int, policy_env: dict | None = None
+) -> NavConfig:
+    """The env config of a unit batch: the eval's env_overrides, one scene, one speed, no curriculum/autoreset.
+
+    ``policy_env`` (a policy's training ``action``/``camera``/``vehicle`` sections) is merged first, so a policy
+    is flown with the action scaling, camera and vehicle it was trained with; the eval's overrides come after.
+    """
     forced = {
         "num_envs": n,
         "scenes.family": family,
@@ -558,7 +589,10 @@ def nav_config(cfg: EvalConfig, family: str, index: int, speed: float, n: int) -
     }
     extra = dict(o.split("=", 1) for o in cfg.env_overrides)
     try:
-        nav = load_config(NavConfig, overrides={**{k: yaml.safe_load(v) for k, v in extra.items()}, **forced})
+        base = load_config(NavConfig, overrides=policy_env) if policy_env else None
+        nav = load_config(
+            NavConfig, overrides={**{k: yaml.safe_load(v) for k, v in extra.items()}, **forced}, base=base
+        )
     except ConfigError as err:
         raise EvalError(f"env_overrides: {err}") from None
     if not cfg.randomization:
@@ -685,7 +719,7 @@ def run_unit(spec: UnitSpec) -> dict:
     records: list[dict] = []
     batches = [b for b in np.array_split(np.arange(n_all), math.ceil(n_all / cfg.batch_size)) if len(b)]
     for b in batches:
-        env = NavigationEnv(config=nav_config(cfg, spec.family, spec.index, spec.speed, len(b)))
+        env = NavigationEnv(config=nav_config(cfg, spec.family, spec.index, spec.speed, len(b), spec.policy_env))
         need = env.cfg.vehicle.airframe.collision_radius + 0.4
         trials = [sample_trial(scene, env.field_stack, 0, seeds[j], need) for j in b]
         for tr, j in zip(trials, b, strict=True):
@@ -769,7 +803,10 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
                         missing[rname] = f"no checkpoint at {cfg.checkpoints[pname]}"
                 continue
             raise err
-        check_layout(pol.info, STATE_DIM, depth_shape)
+        cam = nav_config(cfg, cfg.scenes.family, cfg.scene_indices[0], cfg.speeds[0], 1, pol.info.train_env).camera
+        check_layout(pol.info, STATE_DIM, (1, cam.height, cam.width))
+        if (cam.height, cam.width) != depth_shape[1:]:
+            notes.append(f"policy {pname!r} flies with its training camera {cam.width}x{cam.height}")
         policies[pname] = pol.info
         if pol.info.train_speeds is None:
             notes.append(f"policy {pname!r}: no training config found next to {pol.info.path}; speed range unchecked")
@@ -794,11 +831,12 @@ def plan_units(prep: Prepared) -> list[UnitSpec]:
     for rname, row in prep.rows.items():
         if rname in prep.missing:
             continue
-        path = prep.policies[row.policy].path if row.controller == "policy" else None
+        pol = prep.policies[row.policy] if row.controller == "policy" else None
         for v in cfg.speeds:
             for k in cfg.scene_indices:
                 units.append(UnitSpec(unit_key(rname, cfg.scenes.family, k, v), rname, dataclasses.asdict(row),
-                                      cfg.scenes.family, k, float(v), d, path))  # fmt: skip
+                                      cfg.scenes.family, k, float(v), d, pol and pol.path,
+                                      pol and pol.train_env))  # fmt: skip
     return units
 
 

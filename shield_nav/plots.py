@@ -35,7 +35,7 @@ def plot_success_vs_speed(summary: dict, path: str) -> None:
         sr = np.array([100 * c["success_rate"] for _, c in pts])
         lo = np.array([100 * c["sr_lo"] for _, c in pts])
         hi = np.array([100 * c["sr_hi"] for _, c in pts])
-        err = np.stack((sr - lo, hi - sr))
+        err = np.maximum(np.stack((sr - lo, hi - sr)), 0.0)  # clip float round-off at SR = 0 or 100 %
         ax.errorbar(x, sr, yerr=err, marker="o", capsize=3, label=row.get("label") or rname)
     ax.set_xlabel("target speed [m/s]")
     ax.set_ylabel("success rate [%]")

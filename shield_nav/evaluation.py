@@ -456,7 +456,10 @@ def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
     denom = 1.0 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z / denom * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # At k = 0 (k = n) the lower (upper) bound is exactly 0 (1); set it so round-off cannot leave 3e-17.
+    lo = 0.0 if k == 0 else max(0.0, centre - half)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return lo, hi
 
 
 def trajectory_metrics(
@@ -858,7 +861,7 @@ def _identity(prep: Prepared) -> dict:
     """What must match for a re-run to resume into an existing folder (workers excluded: it changes nothing)."""
     d = to_dict(prep.cfg)
     d.pop("workers", None)
-    return {"config": d, "checkpoints": {k: v.sha256 for k, v in prep.policies.items()}}
+    return {"config": d, "checkpoint_sha256": {k: v.sha256 for k, v in prep.policies.items()}}
 
 
 def _write_json(path: str, data: Any) -> None:
@@ -948,15 +951,14 @@ def evaluate(
                 finish(run_unit(u))
         else:
             ctx = mp.get_context("spawn")
-            with cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_worker_init) as pool:
-                futures = [pool.submit(run_unit, u) for u in todo]
-                try:
-                    for fut in cf.as_completed(futures):
-                        finish(fut.result())
-                except BaseException:
-                    for f in futures:
-                        f.cancel()
-                    raise
+            pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_worker_init)
+            futures = [pool.submit(run_unit, u) for u in todo]
+            try:
+                for fut in cf.as_completed(futures):
+                    finish(fut.result())
+            finally:
+                # On an interrupt or a failed unit: drop queued units, do not wait for the ones in flight.
+                pool.shutdown(wait=False, cancel_futures=True)
     except KeyboardInterrupt:
         bar.close()
         print(f"\ninterrupted: finished units are saved in {unit_dir}; re-run the same command to resume.")

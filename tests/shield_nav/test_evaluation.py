@@ -1,0 +1,261 @@
+"""Evaluation harness: metrics against hand-computed values, baselines' geometry, bad input, a tiny real run that
+renders the table, resume, determinism, the exported-policy path, and the ``eval.py`` CLI in a subprocess.
+
+The tiny runs fly the goal-seeking baseline at 9 m/s in the hardest ablation scene: it hits something within a
+few hundred control steps, so a run takes seconds.
+"""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from shield_nav import evaluation as E
+from shield_nav.baselines import TrackingConfig, accel_to_command, free_distances
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+TINY = [
+    "name=tiny",
+    "configurations=[goal_seeking]",
+    "scenes.family=ablation",
+    "scenes.indices=[7]",
+    "speeds=[9.0]",
+    "trials_per_scene=2",
+    "plots=false",
+]
+
+
+def tiny_cfg(*extra):
+    return E.load_eval_config(None, [*TINY, *extra])
+
+
+# ----------------------------------------------------------------------------------------------- metrics by hand
+def test_wilson_interval_hand_computed():
+    # 8/10: p = 0.8, z^2 = 3.841459, z^2/n = 0.3841459, denom = 1.3841459
+    # centre = (0.8 + 0.1920729) / 1.3841459 = 0.716740; half = 1.959964 / 1.3841459 * sqrt(0.016 + 0.0096036)
+    #        = 1.416010 * 0.160011 = 0.226578  ->  [0.490162, 0.943318]
+    lo, hi = E.wilson_interval(8, 10)
+    assert lo == pytest.approx(0.490162, abs=2e-6)
+    assert hi == pytest.approx(0.943318, abs=2e-6)
+    # 0/12: centre = (3.841459 / 24) / (1 + 3.841459 / 12) = 0.160061 / 1.320122 = 0.121247 = half -> [0, 0.242494]
+    lo, hi = E.wilson_interval(0, 12)
+    assert lo == 0.0 and hi == pytest.approx(0.242494, abs=2e-6)
+    # k = n mirrors k = 0; no trials says nothing.
+    assert E.wilson_interval(12, 12) == pytest.approx((1 - 0.242494, 1.0), abs=2e-6)
+    assert E.wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_trajectory_metrics_hand_made():
+    # Two 3-4-5 legs with a pause: length 5 + 0 + 5 = 10; speeds 5, 0, 5 -> mean 10/3.
+    pos = np.array([[0, 0, 1], [3, 4, 1], [3, 4, 1], [6, 8, 1]], dtype=float)
+    esdf = np.array([1.0, 0.5, 0.25, 2.0])  # mean 3.75 / 4 = 0.9375, min 0.25
+    m = E.trajectory_metrics(pos, np.array([5.0, 0.0, 5.0]), esdf, phi_start=20.0, phi_end=12.0)
+    assert m["path_length"] == pytest.approx(10.0)
+    assert m["mean_speed"] == pytest.approx(10.0 / 3.0)
+    assert m["clearance_mean"] == pytest.approx(0.9375)
+    assert m["clearance_min"] == pytest.approx(0.25)
+    assert m["path_ratio"] == pytest.approx(10.0 / 8.0)  # 10 m flown for 8 m of geodesic progress
+    assert math.isnan(E.trajectory_metrics(pos, np.ones(3), esdf, 5.0, 6.0)["path_ratio"])  # no progress
+
+
+def _trial(outcome, speed, clear_mean, clear_min, ratio, shield=None):
+    t = {"outcome": outcome, "metrics": {"mean_speed": speed, "clearance_mean": clear_mean,
+                                         "clearance_min": clear_min, "path_ratio": ratio}}  # fmt: skip
+    if shield:
+        t["shield"] = shield
+    return t
+
+
+def test_aggregate_hand_made():
+    sh = lambda steps, act, corr, cmax, rel, us, usmax: {  # noqa: E731
+        "steps": steps, "active_steps": act, "corr_sum": corr, "corr_max": cmax, "relaxed_steps": rel,
+        "solve_us_sum": us, "solve_us_max": usmax, "total_us_sum": 10.0 * steps}  # fmt: skip
+    trials = [
+        _trial("success", 4.0, 1.0, 0.5, 1.1, sh(100, 10, 5.0, 2.0, 0, 1000.0, 300.0)),
+        _trial("success", 5.0, 0.8, 0.3, 1.3, sh(100, 30, 9.0, 1.0, 3, 2000.0, 200.0)),
+        _trial("collision", 9.0, 0.6, 0.1, float("nan"), sh(50, 10, 6.0, 4.0, 1, 500.0, 100.0)),
+        _trial("timeout", 1.0, 1.2, 0.7, 2.0, sh(50, 0, 0.0, 0.0, 0, 0.0, 0.0)),
+    ]
+    c = E.aggregate(trials)
+    assert (c["n"], c["successes"], c["success_rate"]) == (4, 2, 0.5)
+    assert c["collision_rate"] == 0.25 and c["timeout_rate"] == 0.25 and c["oob_rate"] == 0.0
+    assert c["vel"] == pytest.approx(4.5)  # successes only: (4 + 5) / 2
+    assert c["path_ratio"] == pytest.approx(1.2)  # successes only: (1.1 + 1.3) / 2
+    assert c["clearance_mean"] == pytest.approx(0.9)  # (1 + 0.8 + 0.6 + 1.2) / 4
+    assert c["clearance_min"] == pytest.approx(0.1)
+    assert c["shield_active"] == pytest.approx(50 / 300)  # pooled control steps
+    assert c["corr_mean"] == pytest.approx(20.0 / 50)  # per active step
+    assert c["corr_max"] == 4.0
+    assert c["relaxed"] == pytest.approx(4 / 300)
+    assert c["qp_us_mean"] == pytest.approx(3500.0 / 50) and c["qp_us_max"] == 300.0
+    assert (c["sr_lo"], c["sr_hi"]) == pytest.approx(E.wilson_interval(2, 4))
+
+
+def test_accel_to_command_and_free_distance_by_hand():
+    cfg = TrackingConfig()
+    g = 9.81
+    # Zero acceleration: hover, level, yaw kept.
+    assert accel_to_command(np.zeros((1, 3)), np.array([0.3]), cfg, g)[0] == pytest.approx([g, 0, 0, 0.3])
+    # a = (g, 0, 0): T = (g, 0, g) is tilted 45 deg > 40 deg, so T_xy is cut to g tan 40; pitch +40 deg (nose down
+    # accelerates +x in ZYX), f_n = g / cos 40.
+    cmd = accel_to_command(np.array([[g, 0.0, 0.0]]), np.zeros(1), cfg, g)[0]
+    assert cmd == pytest.approx([g / math.cos(math.radians(40)), 0.0, math.radians(40), 0.0], abs=1e-9)
+    # Free distance: a point at (5, 0.3, 0), radius 0.5: along +x the ray comes within 0.5 at t = 5 - sqrt(0.25 -
+    # 0.09) = 4.6; along +y it passes 5 m away (never), so the cap (8) is returned; along -x it is behind.
+    dirs = np.array([[1.0, 0, 0], [0, 1.0, 0], [-1.0, 0, 0]])
+    free = free_distances(np.array([[5.0, 0.3, 0.0]]), np.zeros(3), dirs, 0.5, 8.0)
+    assert free == pytest.approx([4.6, 8.0, 8.0])
+
+
+# ----------------------------------------------------------------------------------------------- bad input
+def test_bad_input_errors(tmp_path):
+    with pytest.raises(E.EvalError, match="unknown configuration 'nope'"):
+        E.prepare(tiny_cfg("configurations=[nope]"))
+    with pytest.raises(E.EvalError, match="unknown scene family"):
+        E.parse_scenes("woods:0")
+    with pytest.raises(E.EvalError, match="out of range"):
+        E.parse_scenes("ablation:0,8")
+    assert E.parse_scenes("benchmark:0-2,7").indices == [0, 1, 2, 7]
+    with pytest.raises(E.ConfigError, match="trials_per_scene"):
+        tiny_cfg("trials_per_scene=0")
+    with pytest.raises(E.ConfigError, match="no_such_key"):
+        tiny_cfg("no_such_key=1")
+    # A missing checkpoint: an error with 'error' (the default) and for explicitly given ones; 'skip' marks the row.
+    missing = str(tmp_path / "nowhere")
+    with pytest.raises(E.EvalError, match="does not exist"):
+        E.prepare(tiny_cfg("configurations=[full]", f"checkpoints.dijkstra_cbf={missing}"))
+    prep = E.prepare(tiny_cfg("configurations=[full,goal_seeking]", f"checkpoints.dijkstra_cbf={missing}",
+                              "missing_checkpoints=skip"))  # fmt: skip
+    assert list(prep.missing) == ["full"] and [u.row_name for u in E.plan_units(prep)] == ["goal_seeking"]
+    with pytest.raises(E.EvalError, match="does not exist"):
+        E.prepare(tiny_cfg("configurations=[full]", f"checkpoints.dijkstra_cbf={missing}",
+                           "missing_checkpoints=skip"), explicit_checkpoints=("dijkstra_cbf",))  # fmt: skip
+    # A folder with training checkpoints but no export.
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "model_10.pt").write_bytes(b"x")
+    with pytest.raises(E.EvalError, match="no export|export the actor"):
+        E.load_policy(tmp_path / "run", "p")
+
+
+# ----------------------------------------------------------------------------------------------- policies
+def export_fresh_policy(out_dir, state_dim=21, train_speeds=None):
+    """Export a freshly initialised DepthGRUModel (a real ONNX/TorchScript model, untrained)."""
+    torch = pytest.importorskip("torch")
+    from tensordict import TensorDict
+
+    from shield_nav.models import DepthGRUModel, export_policy
+
+    torch.manual_seed(0)
+    obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, state_dim)}, [2])
+    model = DepthGRUModel(obs, {"actor": ["depth", "state"]}, "actor", 4, rnn_hidden_dim=16,
+                          distribution_cfg={"class_name": "GaussianDistribution", "init_std": 0.5})  # fmt: skip
+    paths = export_policy(model, os.path.join(out_dir, "exported"))
+    if train_speeds is not None:
+        os.makedirs(os.path.join(out_dir, "params"), exist_ok=True)
+        with open(os.path.join(out_dir, "params", "config.yaml"), "w") as f:
+            yaml.safe_dump({"env": {"episode": {"target_speeds": train_speeds}, "action": {"max_tilt_deg": 40.0}}}, f)
+    return paths
+
+
+def test_exported_policy_loads_matches_torchscript_and_flies(tmp_path):
+    paths = export_fresh_policy(str(tmp_path / "ckpt"), train_speeds=[3.0, 5.0])
+    onnx = E.load_policy(tmp_path / "ckpt", "mine")  # the folder: finds exported/policy.onnx
+    jit = E.load_policy(paths["jit"], "mine")
+    assert onnx.info.kind == "onnx" and jit.info.kind == "torchscript"
+    assert (onnx.info.obs_dim, onnx.info.depth_shape, onnx.info.hidden_size) == (21, (1, 60, 100), 16)
+    assert onnx.info.train_speeds == (3.0, 5.0) and onnx.info.train_env == {"action": {"max_tilt_deg": 40.0}}
+    rng = np.random.default_rng(0)
+    state, depth = rng.normal(size=(3, 21)).astype(np.float32), rng.uniform(size=(3, 1, 60, 100)).astype(np.float32)
+    h = onnx.initial_state(3)
+    a1, h1 = onnx.step(state, depth, h)
+    a2, h2 = jit.step(state, depth, h)
+    assert a1.shape == (3, 4) and h1.shape == (1, 3, 16)
+    np.testing.assert_allclose(a1, a2, atol=1e-5)
+    np.testing.assert_allclose(h1, h2, atol=1e-5)
+    # Through the harness: 9 m/s is outside the trained [3, 5] -> a marked warning; the policy flies a short trial.
+    cfg = tiny_cfg("configurations=[mine]", "rows.mine.label=Mine", "rows.mine.policy=mine",
+                   f"checkpoints.mine={tmp_path / 'ckpt'}", "trials_per_scene=1",
+                   "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
+    with pytest.warns(UserWarning, match="outside 'mine'"):
+        summary = E.evaluate(cfg, str(tmp_path / "out"), progress=False)
+    assert "9 m/s is outside" in summary["markdown"] and " !" in summary["paper_table"]
+    man = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert man["checkpoints"]["mine"]["sha256"] == onnx.info.sha256
+    (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
+    assert trial["outcome"] in ("success", "collision", "timeout", "out_of_bounds") and trial["steps"] > 0
+
+
+def test_layout_mismatch_is_a_clear_error(tmp_path):
+    export_fresh_policy(str(tmp_path / "ckpt"), state_dim=20)
+    cfg = tiny_cfg("configurations=[full]", f"checkpoints.dijkstra_cbf={tmp_path / 'ckpt'}")
+    with pytest.raises(E.EvalError, match="state vector has 20 values, the env gives 21"):
+        E.prepare(cfg)
+
+
+# ----------------------------------------------------------------------------------------------- real tiny runs
+def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
+    out1, out2 = str(tmp_path / "a"), str(tmp_path / "b")
+    s1 = E.evaluate(tiny_cfg(), out1, progress=False)
+    # Paper-shaped table with the row and the speed columns; every output file; every trial traceable.
+    assert "| Goal-seeking (no shield) |" in s1["paper_table"] and "9 m/s SR" in s1["paper_table"]
+    for f in ("table.md", "table.csv", "table.tex", "trials.json", "summary.json", "manifest.json", "config.yaml"):
+        assert os.path.exists(os.path.join(out1, f)), f
+    with open(os.path.join(out1, "trials.json")) as f:
+        trials = json.load(f)
+    assert len(trials) == 2 and {"seed", "start", "goal", "outcome", "metrics", "scene"} <= set(trials[0])
+    with open(os.path.join(out1, "manifest.json")) as f:
+        man = json.load(f)
+    assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0
+    # Starts and goals lie in the scene's regions.
+    from envs.scenes import make_scene
+
+    scene = make_scene("ablation", 7)
+    for t in trials:
+        assert np.all(np.asarray(t["start"]) >= scene.start_region[0]) and np.all(
+            t["start"] <= np.asarray(scene.start_region[1])
+        )
+        assert np.all(np.asarray(t["goal"]) >= scene.goal_region[0]) and np.all(
+            t["goal"] <= np.asarray(scene.goal_region[1])
+        )
+    # Determinism: the same command and seed reproduce the table and every trial (timings aside).
+    s2 = E.evaluate(tiny_cfg(), out2, progress=False)
+    assert s2["paper_table"] == s1["paper_table"]
+    with open(os.path.join(out2, "trials.json")) as f:
+        t2 = json.load(f)
+    assert [(t["seed"], t["outcome"], t["steps"], t["metrics"]) for t in t2] == [
+        (t["seed"], t["outcome"], t["steps"], t["metrics"]) for t in trials
+    ]
+    # A different seed gives different trials.
+    assert E.trial_seed(1, "ablation", 7, 9.0, 0) != trials[0]["seed"]
+    # Resume: finished units are skipped (run_unit is never called) and the table is rebuilt from disk.
+    calls = []
+    real = E.run_unit
+    monkeypatch.setattr(E, "run_unit", lambda spec: calls.append(spec.key) or real(spec))
+    s3 = E.evaluate(tiny_cfg(), out1, progress=False)
+    assert calls == [] and s3["paper_table"] == s1["paper_table"]
+    # A lost unit (e.g. interrupted) is the only one re-run.
+    os.remove(os.path.join(out1, "units", "goal_seeking__ablation-07__v9.json"))
+    E.evaluate(tiny_cfg(), out1, progress=False)
+    assert calls == ["goal_seeking__ablation-07__v9"]
+    # Another configuration into the same folder is refused instead of mixing results.
+    with pytest.raises(E.EvalError, match="different run"):
+        E.evaluate(tiny_cfg("seed=5"), out1, progress=False)
+
+
+def test_eval_cli_subprocess(tmp_path):
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(
+        yaml.safe_dump({"name": "tiny", "configurations": ["goal_seeking"], "scenes": {"family": "ablation",
+                        "indices": [7]}, "speeds": [9.0], "trials_per_scene": 2, "plots": False})
+    )  # fmt: skip
+    cmd = [sys.executable, "eval.py", "--config", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "| Goal-seeking (no shield) |" in res.stdout and "2 trials per scene" in res.stdout
+    bad = subprocess.run([*cmd, "--configurations", "nope"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "unknown configuration 'nope'" in bad.stderr

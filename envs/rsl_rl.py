@@ -44,9 +44,11 @@ class RslRlVecEnv(VecEnv):
         self._obs = self._to_tensordict(obs, info["critic"])
 
     @property
-    def max_episode_length(self) -> torch.Tensor:
-        """Per-env time limit in steps (N,)."""
-        return torch.from_numpy(self.env.max_episode_length_buf.copy()).to(self.device)
+    def max_episode_length(self) -> int:
+        """The longest per-env time limit in steps. (Each env's own limit is ``env.max_episode_length_buf``; rsl-rl
+        calls ``int()`` on this for its random initial episode lengths, which the setter below clamps per env.)
+        """
+        return int(self.env.max_episode_length_buf.max())
 
     @property
     def episode_length_buf(self) -> torch.Tensor:

@@ -45,8 +45,10 @@ class RslRlVecEnv(VecEnv):
 
     @property
     def max_episode_length(self) -> int:
-        """The longest per-env time limit in steps. (Each env's own limit is ``env.max_episode_length_buf``; rsl-rl
-        calls ``int()`` on this for its random initial episode lengths, which the setter below clamps per env.)
+        """The longest per-env time limit in steps.
+
+        Each env's own limit is ``env.max_episode_length_buf``; rsl-rl calls ``int()`` on this for its random initial
+        episode lengths, which the ``episode_length_buf`` setter clamps per env.
         """
         return int(self.env.max_episode_length_buf.max())
 

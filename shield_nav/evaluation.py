@@ -962,6 +962,8 @@ def evaluate(
     except KeyboardInterrupt:
         bar.close()
         print(f"\ninterrupted: finished units are saved in {unit_dir}; re-run the same command to resume.")
+        with contextlib.suppress(Exception):
+            write_outputs(prep, out_dir, units)  # a partial table, marked as such in its header
         raise
     bar.close()
     return write_outputs(prep, out_dir, units)
@@ -998,6 +1000,8 @@ def summarize(prep: Prepared, unit_results: list[dict]) -> dict:
         "missing": prep.missing,
         "speed_flags": {f"{r}@{v:g}": m for (r, v), m in prep.speed_flags.items()},
         "notes": prep.warnings,
+        "units_done": len(unit_results),
+        "units_total": len(plan_units(prep)),
     }
 
 
@@ -1025,6 +1029,9 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
             "MISSING policy rows (no checkpoint): " + ", ".join(f"{k} ({v})" for k, v in prep.missing.items()) + "."
         )
     lines += [f"WARNING (marked !): {m}." for m in prep.speed_flags.values()]
+    done, total = summary.get("units_done", 0), summary.get("units_total", 0)
+    if done < total:
+        lines.append(f"PARTIAL: {done} of {total} units finished; re-run the same command to complete the table.")
     return lines
 
 

@@ -240,6 +240,9 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     assert calls == [] and s3["paper_table"] == s1["paper_table"]
     # A lost unit (e.g. interrupted) is the only one re-run.
     os.remove(os.path.join(out1, "units", "goal_seeking__ablation-07__v9.json"))
+    prep = E.prepare(tiny_cfg())
+    partial = E.write_outputs(prep, out1, E.plan_units(prep))  # what an interrupted run leaves: a marked table
+    assert "PARTIAL: 0 of 1 units finished" in partial["markdown"]
     E.evaluate(tiny_cfg(), out1, progress=False)
     assert calls == ["goal_seeking__ablation-07__v9"]
     # Another configuration into the same folder is refused instead of mixing results.

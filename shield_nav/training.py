@@ -24,6 +24,7 @@ import contextlib
 import copy
 import dataclasses
 import datetime
+import glob
 import os
 import signal
 import sys
@@ -360,8 +361,11 @@ def train(
     torch.manual_seed(cfg.seed + rank)
     print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)
 
-    if resume is not None:
+    if resume is not None and glob.glob(os.path.join(os.path.dirname(os.path.abspath(resume)), "events.out.tfevents*")):
         run_dir = os.path.dirname(os.path.abspath(resume))
+    elif resume is not None:
+        # A packaged policy (checkpoints/<name>/model.pt) has no run folder: continue in a new one under log_dir.
+        run_dir = _new_run_dir(cfg) if rank == 0 else None
     else:
         run_dir = _new_run_dir(cfg) if rank == 0 else None
     if rank == 0:

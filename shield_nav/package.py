@@ -1,0 +1,104 @@
+"""Package a training checkpoint as a committed policy: ``checkpoints/<name>/``.
+
+``python -m shield_nav.package logs/shield_nav/<run>/model_<it>.pt --name dijkstra_cbf``
+
+writes ``checkpoints/<name>/`` with the rsl-rl checkpoint (``model.pt``: actor, critic and optimizer, resumable
+with ``train.py --resume``), the resolved training config (``params/config.yaml``), the exported actor
+(``policy.onnx`` and TorchScript ``policy.pt``), the run's tensorboard scalars up to that iteration
+(``curves.csv``, the reference for ``shield_nav.compare_runs``) and a ``meta.json`` (iteration, env steps,
+wall time, source run, sha256 of every file).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+
+import torch
+from tensordict import TensorDict
+
+from envs.config import to_yaml
+from envs.navigation import STATE_DIM
+from shield_nav.compare_runs import read_events, write_csv
+from shield_nav.models import DepthGRUModel, export_policy
+from shield_nav.training import TrainConfig, load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
+
+
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel, TrainConfig, dict]:
+    """Rebuild the trained actor of a checkpoint from its stored config (no env needed)."""
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    infos = read_checkpoint_infos(ckpt_path)
+    cfg = load_train_config(overrides=infos["config"]) if isinstance(infos.get("config"), dict) else None
+    if cfg is None:
+        raise ValueError(f"{ckpt_path}: the checkpoint carries no resolved config")
+    cam = cfg.env.camera
+    n_crit = ckpt["critic_state_dict"]["mlp.0.weight"].shape[1] if "mlp.0.weight" in ckpt["critic_state_dict"] else 1
+    obs = TensorDict(
+        {
+            "depth": torch.zeros(1, 1, cam.height, cam.width),
+            "state": torch.zeros(1, STATE_DIM),
+            "critic": torch.zeros(1, n_crit),
+        },
+        batch_size=[1],
+    )
+    train_cfg = rsl_rl_train_cfg(cfg)
+    actor_kwargs = {k: v for k, v in train_cfg["actor"].items() if k != "class_name"}
+    model = DepthGRUModel(obs, train_cfg["obs_groups"], "actor", 4, **actor_kwargs)
+    model.load_state_dict(ckpt["actor_state_dict"])
+    model.eval()
+    return model, cfg, {"iter": int(ckpt["iter"]), **{k: v for k, v in infos.items() if k != "config"}}
+
+
+def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
+    """Write ``<out_root>/<name>/`` from a training checkpoint; return the folder."""
+    model, cfg, meta = actor_from_checkpoint(ckpt_path)
+    out = os.path.join(out_root, name)
+    os.makedirs(os.path.join(out, "params"), exist_ok=True)
+    shutil.copyfile(ckpt_path, os.path.join(out, "model.pt"))
+    with open(os.path.join(out, "params", "config.yaml"), "w") as fh:
+        fh.write(to_yaml(cfg))
+    export_policy(model, out)
+    run_dir = os.path.dirname(os.path.abspath(ckpt_path))
+    try:
+        series = read_events(run_dir)
+        series = {k: [(s, v) for s, v in pts if s <= meta["iter"]] for k, pts in series.items()}
+        write_csv(series, os.path.join(out, "curves.csv"))
+    except FileNotFoundError:
+        pass
+    files = sorted(f for f in os.listdir(out) if os.path.isfile(os.path.join(out, f)) and f != "meta.json")
+    meta.update(
+        {
+            "name": name,
+            "source_run": os.path.relpath(run_dir),
+            "source_checkpoint": os.path.basename(ckpt_path),
+            "sha256": {f: _sha256(os.path.join(out, f)) for f in files},
+        }
+    )
+    with open(os.path.join(out, "meta.json"), "w") as fh:
+        json.dump(meta, fh, indent=2, default=str)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """CLI entry point."""
+    p = argparse.ArgumentParser(prog="python -m shield_nav.package", description=__doc__.splitlines()[0])
+    p.add_argument("checkpoint", help="model_<it>.pt of a training run")
+    p.add_argument("--name", required=True, help="policy name (folder under --out)")
+    p.add_argument("--out", default="checkpoints", help="root folder (default: checkpoints)")
+    args = p.parse_args(argv)
+    print(f"packaged {package(args.checkpoint, args.name, args.out)}")
+
+
+if __name__ == "__main__":
+    main()

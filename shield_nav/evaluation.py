@@ -1024,6 +1024,8 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
     ]
     if any(r.controller == "oracle" for r in prep.rows.values()):
         lines.append("The oracle reads the privileged map (geodesic field and ESDF): an upper bound, not a competitor.")
+    for name, info in prep.policies.items():
+        lines.append(f"Checkpoint `{name}`: {info.path} (sha256 {info.sha256[:12]}, {info.kind}).")
     if prep.missing:
         lines.append(
             "MISSING policy rows (no checkpoint): " + ", ".join(f"{k} ({v})" for k, v in prep.missing.items()) + "."

@@ -33,14 +33,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="trial sampling seed")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="dotted eval-config override")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--video",
+        action="store_true",
+        help="after the run, re-fly trial 0 of the first scene at the top speed per configuration and record it "
+        "(MuJoCo chase view + depth inset as MP4; animated top-down plot if MuJoCo cannot render here)",
+    )
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse, build the config, run, print the table. Bad input exits with status 2 and one clear line."""
+    args = build_parser().parse_args(argv)
+    if args.video:
+        os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display; set before mujoco loads
     from shield_nav.evaluation import ConfigError, EvalError, config_from_args, evaluate
 
-    args = build_parser().parse_args(argv)
     try:
         cfg, explicit = config_from_args(args)
         out = args.out or os.path.join("eval_out", cfg.name)
@@ -55,6 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(summary["paper_table"])
     print(f"\nwritten to {out}/ (table.md, table.csv, table.tex, trials.json, summary.json, figures/)")
+    if args.video:
+        from shield_nav.evaluation import prepare, record_videos
+
+        record_videos(prepare(cfg, explicit), out)
     return 0
 
 

@@ -612,8 +612,12 @@ def _policy(path: str) -> LoadedPolicy:
     return _POLICY_CACHE[path]
 
 
-def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any) -> list[dict]:
-    """Fly one batch of pinned trials to the end; returns per-trial records."""
+def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on_step: Any | None = None) -> list[dict]:
+    """Fly one batch of pinned trials to the end; returns per-trial records.
+
+    ``on_step(env, t, active)`` (optional) is called after the reset (t = 0) and after every control step, with
+    ``active`` (N,) the shield's activity of that step (all False without a shield); video recording uses it.
+    """
     row = RowConfig(**spec.row)
     n = len(trials)
     env.sim_time = 0.0  # moving obstacles start from their t = 0 positions in every batch (determinism)
@@ -649,6 +653,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any) ->
           "solve_us_max": np.zeros(n), "total_us_sum": np.zeros(n)}  # fmt: skip
     t = 0
     zeros = np.zeros((n, 4))
+    if on_step is not None:
+        on_step(env, 0, np.zeros(n, dtype=bool))
     while (end_step < 0).any():
         live = end_step < 0
         if policy is not None:
@@ -656,11 +662,13 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any) ->
             cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None else None
         else:
             act, cmd = zeros, ctrl.commands(env)  # type: ignore[union-attr]
+        step_active = np.zeros(n, dtype=bool)
         if shield is not None:
             li = np.flatnonzero(live)
             out = shield.filter(cmd[li], env.local_pos[li], env.vehicles.vel_w[li],
                                 depth=env.sensor_depth_buf[li], R_wb=env.vehicles.R_wb[li])  # fmt: skip
             cmd[li] = out.command
+            step_active[li] = out.active
             corr = np.linalg.norm(out.accel_safe - out.accel_raw, axis=1)
             sh["steps"][li] += 1
             sh["active_steps"][li] += out.active
@@ -672,6 +680,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any) ->
             sh["total_us_sum"][li] += out.total_us
         obs, _, term, trunc, info = env.step(act, commands=cmd)
         t += 1
+        if on_step is not None:
+            on_step(env, t, step_active)
         pos = env.local_pos.copy()
         track_pos.append(pos)
         track_speed.append(np.linalg.norm(env.vehicles.vel_w, axis=1))
@@ -1210,3 +1220,55 @@ def config_from_args(args: Any) -> tuple[EvalConfig, tuple[str, ...]]:
     except ConfigError as err:
         raise EvalError(str(err)) from None
     return cfg, tuple(explicit)
+
+
+# ============================================================================================ videos
+def record_videos(prep: Prepared, out_dir: str, fps: int = 25, size: tuple[int, int] = (360, 640)) -> list[str]:
+    """Re-fly trial 0 of the first scene at the top speed for every row and record it (issue #8, "watching a flight").
+
+    A chase view from MuJoCo's offscreen renderer (``MUJOCO_GL=egl`` on a machine without a display) with the
+    sensor depth image inset, the speed and the shield's activity written on each frame, saved as MP4 (imageio +
+    imageio-ffmpeg) or, without them, as an animated GIF. If MuJoCo cannot render here, the fallback is an animated
+    top-down plot of the same trial over the ESDF; the message says which one was written. The re-flown trial is
+    the one in the tables (same seed, same pinned start and goal; the flight is deterministic).
+    """
+    from envs.navigation import NavigationEnv
+    from shield_nav import plots
+
+    cfg = prep.cfg
+    os.makedirs(os.path.join(out_dir, "videos"), exist_ok=True)
+    paths = []
+    speed, idx = max(cfg.speeds), cfg.scene_indices[0]
+    every = max(1, round(1.0 / (fps * 0.01)))  # control steps per frame (100 Hz control)
+    for spec in plan_units(prep):
+        if spec.index != idx or spec.speed != speed:
+            continue
+        env = NavigationEnv(config=nav_config(cfg, spec.family, idx, speed, 1, spec.policy_env))
+        need = env.cfg.vehicle.airframe.collision_radius + 0.4
+        trial = sample_trial(make_scene(spec.family, idx), env.field_stack, 0,
+                             trial_seed(cfg.seed, spec.family, idx, speed, 0), need)  # fmt: skip
+        trial["trial"] = 0
+        base = os.path.join(out_dir, "videos", f"{spec.key}__trial0")
+        try:
+            rec = plots.ChaseRecorder(env, size)
+        except Exception as err:  # no OpenGL here: say so and fall back to the top-down animation
+            print(f"NOTE: MuJoCo offscreen rendering is unavailable ({type(err).__name__}: {err}); "
+                  "writing an animated top-down plot instead.", flush=True)  # fmt: skip
+            rec = None
+        frames: list[np.ndarray] = []
+
+        def on_step(env: Any, t: int, active: np.ndarray, rec: Any = rec, frames: list = frames) -> None:
+            if rec is not None and t % every == 0:
+                frames.append(rec.frame(env, t, bool(active[0])))
+
+        (record,) = _run_batch(spec, cfg, [trial], env, on_step)
+        if rec is not None:
+            paths.append(plots.write_video(frames, base, fps))
+        else:
+            from envs.fields import build_fields
+
+            fields = build_fields(make_scene(spec.family, idx), resolution=env.cfg.scenes.field_resolution,
+                                  vehicle_radius=env.cfg.vehicle.airframe.collision_radius)  # fmt: skip
+            paths.append(plots.animate_topdown(make_scene(spec.family, idx), fields, record, base + ".gif"))
+        print(f"video: {paths[-1]} ({spec.row_name}, outcome {record['outcome']})", flush=True)
+    return paths

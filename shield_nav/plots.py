@@ -147,3 +147,89 @@ def write_figures(prep: Any, summary: dict, results: list[dict], out_dir: str) -
         plot_trajectories(scene, fields, here, labels, p)
         paths.append(p)
     return paths
+
+
+class ChaseRecorder:
+    """Chase-camera frames of vehicle 0 from MuJoCo's offscreen renderer, with the depth image inset.
+
+    Raises whatever MuJoCo raises when no OpenGL context can be made (the caller falls back to a top-down plot).
+    """
+
+    def __init__(self, env: Any, size: tuple[int, int] = (360, 640)) -> None:  # noqa: D107
+        import mujoco
+
+        self._mj = mujoco
+        self.renderer = mujoco.Renderer(env.vehicles.model, size[0], size[1])
+        self.cam = mujoco.MjvCamera()
+        self.cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        self.cam.distance = 2.0
+        self.cam.elevation = -15.0
+        self.opt = mujoco.MjvOption()
+        self.opt.geomgroup[:] = 1  # the vehicle's visual parts are in geom group 3, hidden by default
+
+    def frame(self, env: Any, t: int, shield_active: bool) -> np.ndarray:
+        """One RGB frame (H, W, 3) uint8 at the current state of vehicle 0."""
+        from PIL import Image, ImageDraw
+
+        r = env.vehicles.R_wb[0]
+        self.cam.lookat[:] = env.vehicles.pos_w[0]
+        self.cam.azimuth = float(np.degrees(np.arctan2(r[1, 0], r[0, 0])))  # look along the heading, from behind
+        self.renderer.update_scene(env.vehicles.data, self.cam, self.opt)
+        rgb = self.renderer.render().copy()
+        # Depth inset: near = bright (inverse depth), invalid = black, upscaled 2x with nearest neighbours.
+        d = env.sensor_depth_buf[0, 0]
+        cam = env.cfg.camera
+        inv = np.where((d > 0) & (d < cam.max_range), cam.min_range / np.maximum(d, 1e-6), 0.0)
+        import matplotlib
+
+        inset = (matplotlib.colormaps["magma"](np.clip(inv, 0, 1))[:, :, :3] * 255).astype(np.uint8)
+        inset = inset.repeat(2, axis=0).repeat(2, axis=1)
+        h, w = inset.shape[:2]
+        rgb[8 : 8 + h, 8 : 8 + w] = inset
+        img = Image.fromarray(rgb)
+        draw = ImageDraw.Draw(img)
+        speed = float(np.linalg.norm(env.vehicles.vel_w[0]))
+        text = f"t {t * 0.01:5.2f} s   |v| {speed:4.1f} m/s   target {env.target_speed_buf[0]:.0f} m/s"
+        draw.text((8, 12 + h), text + ("   SHIELD ACTIVE" if shield_active else ""), fill=(255, 255, 255))
+        return np.asarray(img)
+
+
+def write_video(frames: list[np.ndarray], base: str, fps: int) -> str:
+    """Write frames as ``base.mp4`` (imageio + imageio-ffmpeg) or, without them, ``base.gif`` (Pillow)."""
+    try:
+        import imageio.v2 as imageio
+
+        path = base + ".mp4"
+        imageio.mimwrite(path, frames, fps=fps, macro_block_size=8)
+        return path
+    except Exception:
+        from PIL import Image
+
+        path = base + ".gif"
+        imgs = [Image.fromarray(f) for f in frames[::2]]
+        imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=int(2000 / fps), loop=0)
+        return path
+
+
+def animate_topdown(scene: Any, fields: Any, trial: dict, path: str, fps: int = 10) -> str:
+    """Animated top-down plot of one trial's recorded trajectory over the ESDF (the no-OpenGL fallback)."""
+    plt = _plt()
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    from envs.scenes.plot import draw_scene
+
+    tr = np.asarray(trial["traj"])
+    fig, ax = plt.subplots(figsize=(10, 10 * scene.size[1] / scene.size[0] + 0.8), layout="constrained")
+    draw_scene(ax, scene, fields)
+    (line,) = ax.plot([], [], color="tab:red", lw=1.5)
+    (dot,) = ax.plot([], [], "o", color="tab:red")
+
+    def update(k: int) -> tuple:
+        line.set_data(tr[: k + 1, 0], tr[: k + 1, 1])
+        dot.set_data(tr[k : k + 1, 0], tr[k : k + 1, 1])
+        ax.set_title(f"{trial['row']} trial {trial['trial']}: |v| {tr[k, 3]:.1f} m/s ({trial['outcome']})")
+        return line, dot
+
+    FuncAnimation(fig, update, frames=len(tr), blit=False).save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return path

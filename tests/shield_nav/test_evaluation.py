@@ -262,3 +262,20 @@ def test_eval_cli_subprocess(tmp_path):
     assert "| Goal-seeking (no shield) |" in res.stdout and "2 trials per scene" in res.stdout
     bad = subprocess.run([*cmd, "--configurations", "nope"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "unknown configuration 'nope'" in bad.stderr
+
+
+def test_video_writers_without_rendering(tmp_path):
+    # The MP4/GIF writer and the no-OpenGL fallback (an animated top-down plot of a recorded trajectory).
+    from envs.fields import build_fields
+    from envs.scenes import make_scene
+    from shield_nav import plots
+
+    frames = [np.full((16, 16, 3), 40 * k, dtype=np.uint8) for k in range(4)]
+    path = plots.write_video(frames, str(tmp_path / "clip"), fps=10)
+    assert path.endswith((".mp4", ".gif")) and os.path.getsize(path) > 0
+    scene = make_scene("ablation", 0)
+    fields = build_fields(scene, resolution=0.2, vehicle_radius=0.2)
+    trial = {"row": "oracle", "trial": 0, "outcome": "success",
+             "traj": [[0.5, 0.0, 1.0, 0.0], [2.0, 0.5, 1.0, 3.0], [4.0, 1.0, 1.0, 4.0]]}  # fmt: skip
+    gif = plots.animate_topdown(scene, fields, trial, str(tmp_path / "top.gif"))
+    assert os.path.getsize(gif) > 0

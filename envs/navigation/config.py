@@ -39,6 +39,11 @@ class EpisodeConfig:
     """Target speeds [m/s]: each episode samples one uniformly (or from ``speed_range`` if it is set)."""
     speed_range: list[float] = field(default_factory=list)
     """If [lo, hi] is given, target speeds are sampled uniformly from it instead of ``target_speeds``."""
+    goal_anchors: int = 9
+    """K > 0: goals are drawn among K anchor points across the goal region, each with its own geodesic field, so
+    the navigation reward leads to the episode's goal (see ``envs.fields.anchors``). 0: goals uniform in the goal
+    region and Phi flows to the whole region (the paper's literal per-scene map; the final approach to the goal's
+    side of the region is then unrewarded). Only used with ``reward.navigation: geodesic``."""
     goal_radius: float = 5.0
     """Success when the vehicle is within this distance of the goal point [m] (paper: 5 m)."""
     yaw_cone_deg: float = 30.0
@@ -233,6 +238,7 @@ class NavConfig:
             "give target_speeds (all > 0) or speed_range [lo, hi] with 0 < lo <= hi",
         )
         require(self.episode.goal_radius > 0, f"{prefix}episode.goal_radius", "must be > 0")
+        require(self.episode.goal_anchors >= 0, f"{prefix}episode.goal_anchors", "must be >= 0")
         a = self.action
         require(
             0 < a.thrust_min < self.vehicle.gravity < a.thrust_max <= self.vehicle.controller.thrust_range[1],

@@ -14,6 +14,7 @@ from gymnasium.vector.utils import batch_space
 from envs.camera import DepthCamera, DepthNoise, normalize_depth
 from envs.config import load_config
 from envs.fields import FieldStack, build_fields
+from envs.fields.anchors import GoalAnchorFields
 from envs.navigation import rewards as R
 from envs.navigation.config import REWARD_TERMS, NavConfig
 from envs.scenes import make_scene
@@ -107,6 +108,11 @@ class NavigationEnv(VectorEnv):
             for s in self.scenes
         ]
         self.field_stack = FieldStack(self.fields)
+        # Goal anchors set the goal distribution for every formulation (so ablations fly the same goals); their
+        # fields are the navigation potential only with the geodesic reward.
+        k = cfg.episode.goal_anchors
+        self.anchor_fields = GoalAnchorFields(self.scenes, self.fields, k) if k > 0 else None
+        self._anchor_phi = self.anchor_fields is not None and cfg.reward.navigation == "geodesic"
         length = max(s.bounds_hi[0] - s.bounds_lo[0] for s in self.scenes)
         self.tile_offset = np.array([[k * (length + sc.tile_gap), 0.0, 0.0] for k in range(len(self.scenes))])
         world = "".join(
@@ -144,6 +150,7 @@ class NavigationEnv(VectorEnv):
         self.level_buf = np.zeros(n, dtype=np.int64)
         self.fail_streak_buf = np.zeros(n, dtype=np.int64)
         self.goal_buf = np.zeros((n, 3))
+        self.anchor_buf = np.zeros(n, dtype=np.int64)
         self.target_speed_buf = np.zeros(n)
         self.episode_length_buf = np.zeros(n, dtype=np.int64)
         self.max_episode_length_buf = np.zeros(n, dtype=np.int64)
@@ -185,6 +192,8 @@ class NavigationEnv(VectorEnv):
             self.noise._rng = self._rng
         options = dict(options or {})
         env_ids = np.asarray(options.pop("env_ids", np.arange(self.num_envs)), dtype=np.int64)
+        if len(env_ids) == self.num_envs:
+            self.sim_time = 0.0  # moving obstacles restart with a full reset (their clock is shared per scene)
         if seed is not None or not hasattr(self, "_started"):
             self._started = True
             if self.cfg.curriculum.enabled and self.cfg.scenes.family == "train":
@@ -301,9 +310,11 @@ class NavigationEnv(VectorEnv):
     def _update_fields(self) -> None:
         """Privileged fields at the current vehicle positions (scene frame)."""
         pos = self.local_pos
-        esdf, grad, phi = self.field_stack.query(self.scene_id_buf, pos)
+        esdf, grad, phi = self.field_stack.query(self.scene_id_buf, pos, geodesic=not self._anchor_phi)
         if self.cfg.reward.navigation == "euclidean":
             phi = np.linalg.norm(self.goal_buf - pos, axis=1)
+        elif self._anchor_phi:
+            phi = self.anchor_fields.geodesic(self.scene_id_buf, self.anchor_buf, pos)
         self._field_cache = (pos, esdf, grad, phi)
 
     @property
@@ -430,7 +441,17 @@ class NavigationEnv(VectorEnv):
             raise ValueError(f"scene_ids must be in 0..{len(self.scenes) - 1}")
         self.scene_id_buf[env_ids] = scene_ids
         start = self._sample_free(scene_ids, "start_region") if start is None else np.asarray(start, dtype=float)
-        goal = self._sample_free(scene_ids, "goal_region") if goal is None else np.asarray(goal, dtype=float)
+        if self.anchor_fields is not None:
+            if goal is None:
+                anchor = self.anchor_fields.sample(scene_ids, rng)
+                goal = self.anchor_fields.anchors[scene_ids, anchor]
+            else:
+                goal = np.asarray(goal, dtype=float)
+                anchor = self.anchor_fields.nearest(scene_ids, goal)
+            self.anchor_buf[env_ids] = anchor
+        elif goal is None:
+            goal = self._sample_free(scene_ids, "goal_region")
+        goal = np.asarray(goal, dtype=float)
         if speed is None:
             e = cfg.episode
             speed = rng.uniform(*e.speed_range, m) if e.speed_range else rng.choice(e.target_speeds, m)
@@ -462,6 +483,8 @@ class NavigationEnv(VectorEnv):
         # Potential at the start, so the first step's progress is measured from here.
         if cfg.reward.navigation == "euclidean":
             self.phi_prev_buf[env_ids] = dist
+        elif self._anchor_phi:
+            self.phi_prev_buf[env_ids] = self.anchor_fields.geodesic(scene_ids, self.anchor_buf[env_ids], start)
         else:
             self.phi_prev_buf[env_ids] = self.field_stack.geodesic(scene_ids, start)
 

@@ -205,3 +205,24 @@ def test_grid_covers_bounds():
     g = Grid.for_scene(Scene(), 0.1)
     assert g.shape == (641, 321, 31)
     assert math.isclose(g.axis(0)[-1], 64.0, abs_tol=1e-9)
+
+
+def test_goal_anchor_fields_lead_to_their_own_anchor():
+    from envs.fields.anchors import GoalAnchorFields, anchor_points
+
+    scene = Scene()  # empty 64 x 32 x 3 m scene with a floor
+    f = build_fields(scene, resolution=0.25, vehicle_radius=0.2, use_cache=False)
+    anchors = GoalAnchorFields([scene], [f], 3, cache_dir=None)
+    np.testing.assert_allclose(anchor_points(scene, 3)[:, 1], [-14.5, 0.0, 14.5])
+    ids = np.zeros(3, dtype=np.int64)
+    # Free space: Phi to anchor k is the straight distance to its goal box (x >= 63, |y - y_k| <= 0.5, |z - z_c|
+    # <= 0.5), within the stencil's error (+3 %) and one grid cell.
+    p = np.array([[10.0, 0.0, 1.5], [10.0, 0.0, 1.5], [60.0, 14.5, 1.5]])
+    phi = anchors.geodesic(ids, np.array([0, 1, 2]), p)
+    exact = np.array([np.hypot(53.0, 14.0), 53.0, 3.0])
+    assert np.all(phi >= exact - 0.3) and np.all(phi <= exact * 1.03 + 0.3)
+    # Moving towards anchor 0's side lowers Phi_0 and raises Phi_2.
+    q = p[:1] + np.array([[0.0, -1.0, 0.0]])
+    assert anchors.geodesic(ids[:1], [0], q)[0] < phi[0]
+    assert anchors.geodesic(ids[:1], [2], q)[0] > anchors.geodesic(ids[:1], [2], p[:1])[0]
+    np.testing.assert_array_equal(anchors.nearest(ids[:1], np.array([[63.5, 13.0, 1.0]])), [2])

@@ -74,6 +74,11 @@ class ShieldConfig:
     """Flyable tilt [deg]; matches the vehicle controller's clamp."""
     point_filter: list[float] = field(default_factory=lambda: [0.0, 10.0])
     """Only points at distances in [min, max] metres from the vehicle are considered."""
+    z_window: list[float] = field(default_factory=lambda: [0.15, 1.0e9])
+    """Only points with world height z in [min, max] metres are obstacles for the shield. The default drops the
+    ground (floor at z = 0): with the |r|^2 barrier, floor points 2-8 m ahead of a vehicle cruising at 5 m/s and
+    1.5 m altitude violate the HOCBF row although the flight is level, so an unfiltered floor keeps the shield on
+    and pushes the vehicle up. Altitude is left to the policy (its height reward) as in the paper's training."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
@@ -93,6 +98,11 @@ class ShieldConfig:
         lo, hi = self.thrust_range
         require(0 < lo < hi, f"{prefix}thrust_range", f"must satisfy 0 < min < max, got {self.thrust_range}")
         require(0 < self.max_tilt_deg < 90, f"{prefix}max_tilt_deg", "must be in (0, 90)")
+        require(
+            len(self.z_window) == 2 and self.z_window[0] < self.z_window[1],
+            f"{prefix}z_window",
+            f"must be [min, max] with min < max, got {self.z_window}",
+        )
         require(
             len(self.point_filter) == 2 and 0 <= self.point_filter[0] < self.point_filter[1],
             f"{prefix}point_filter",
@@ -182,6 +192,8 @@ def _select(
     r_safe: float,
     d_min: float,
     d_max: float,
+    z_lo: float,
+    z_hi: float,
     n_az: int,
     n_el: int,
     k_max: int,
@@ -208,7 +220,7 @@ def _select(
         ry = p[1] - points[i, 1]
         rz = p[2] - points[i, 2]
         d2 = rx * rx + ry * ry + rz * rz
-        if d2 < d_min * d_min or d2 > d_max * d_max:
+        if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
         m = (
             2.0 * (rx * a_raw[0] + ry * a_raw[1] + rz * a_raw[2])
@@ -343,7 +355,8 @@ class HOCBFShield:
         n = _select(
             pts, np.asarray(pos_w, dtype=np.float64), np.asarray(vel_w, dtype=np.float64),
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
-            c.point_filter[1], c.azimuth_sectors, c.elevation_sectors, c.max_constraints, self._r_buf, self._b_buf,
+            c.point_filter[1], c.z_window[0], c.z_window[1], c.azimuth_sectors, c.elevation_sectors,
+            c.max_constraints, self._r_buf, self._b_buf,
             self._min_buf,
         )  # fmt: skip
         r = self._r_buf[:n].copy()

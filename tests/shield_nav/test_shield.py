@@ -219,3 +219,17 @@ def test_selected_rows_equal_hocbf_rows_and_one_per_sector():
     assert len(r) == 3
     assert any(np.allclose(row, pos - pts[1]) for row in r)
     assert not any(np.allclose(row, pos - pts[0]) or np.allclose(row, pos - pts[2]) for row in r)
+
+
+def test_ground_points_are_filtered_and_would_otherwise_trigger_level_flight():
+    # Level flight at 5 m/s, 1.5 m above a floor sampled every 0.25 m. For a floor point x metres ahead, at zero
+    # acceleration the HOCBF row reads 2|v|^2 + a1 (2 r.v) + a0 (|r|^2 - r_safe^2) = 4x^2 - 40x + 58 (a0 = a1 = 4),
+    # negative for 1.76 m < x < 8.24 m: the unfiltered shield brakes and climbs although nothing is in the way.
+    xs, ys = np.meshgrid(np.arange(0.0, 10.0, 0.25), np.arange(-3.0, 3.0, 0.25))
+    floor = np.stack((xs.ravel(), ys.ravel(), np.zeros(xs.size)), 1)
+    cmd = np.array([[G, 0.0, 0.0, 0.0]])
+    pos, vel = np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0.0, 0.0]])
+    on = HOCBFShield().filter(cmd, pos, vel, points_w=[floor])
+    off = HOCBFShield(ShieldConfig(z_window=[-1.0e9, 1.0e9])).filter(cmd, pos, vel, points_w=[floor])
+    assert not on.active[0] and on.num_constraints[0] == 0
+    assert off.active[0] and off.accel_safe[0, 2] > 0.0  # the unfiltered floor pushes the vehicle up

@@ -666,7 +666,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         if shield is not None:
             li = np.flatnonzero(live)
             out = shield.filter(cmd[li], env.local_pos[li], env.vehicles.vel_w[li],
-                                depth=env.sensor_depth_buf[li], R_wb=env.vehicles.R_wb[li])  # fmt: skip
+                                depth=env.sensor_depth_buf[li], R_wb=env.vehicles.R_wb[li], ids=li)  # fmt: skip
             cmd[li] = out.command
             step_active[li] = out.active
             corr = np.linalg.norm(out.accel_safe - out.accel_raw, axis=1)

@@ -74,6 +74,10 @@ class ShieldConfig:
     """Flyable tilt [deg]; matches the vehicle controller's clamp."""
     point_filter: list[float] = field(default_factory=lambda: [0.0, 10.0])
     """Only points at distances in [min, max] metres from the vehicle are considered."""
+    memory_steps: int = 0
+    """If > 0, each vehicle remembers the obstacle points its constraints used in the last ``memory_steps`` calls
+    (world frame) and adds them to the current cloud, so an obstacle that leaves the 87 deg field of view while the
+    vehicle passes it still constrains the command for that long. 0: the current image only (the paper)."""
     z_window: list[float] = field(default_factory=lambda: [0.15, 1.0e9])
     """Only points with world height z in [min, max] metres are obstacles for the shield. The default drops the
     ground (floor at z = 0): with the |r|^2 barrier, floor points 2-8 m ahead of a vehicle cruising at 5 m/s and
@@ -88,6 +92,7 @@ class ShieldConfig:
         require(self.max_constraints >= 1, f"{prefix}max_constraints", "must be >= 1")
         require(self.azimuth_sectors >= 1 and self.elevation_sectors >= 1, f"{prefix}azimuth_sectors", "must be >= 1")
         require(self.voxel >= 0, f"{prefix}voxel", "must be >= 0")
+        require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(
             self.solver in qpsolvers.available_solvers,
             f"{prefix}solver",
@@ -294,6 +299,8 @@ class HOCBFShield:
         self.cfg = cfg = cfg if cfg is not None else ShieldConfig()
         cfg.validate()
         self.camera = camera if camera is not None else CameraConfig()
+        self._memory: dict[int, np.ndarray] = {}  # vehicle id -> (memory_steps * K, 3) ring of points (NaN: empty)
+        self._memory_head: dict[int, int] = {}
         self._r_buf = np.zeros((cfg.max_constraints, 3))
         self._b_buf = np.zeros(cfg.max_constraints)
         self._min_buf = np.zeros(1)
@@ -411,6 +418,28 @@ class HOCBFShield:
         a[2] = min(max(a[2], -0.5 * self.cfg.gravity), 0.5 * self.cfg.gravity)
         return a
 
+    def reset(self, ids: np.ndarray | None = None) -> None:
+        """Forget the point memory of vehicle ``ids`` (all if None); call it when a vehicle starts a new episode."""
+        if ids is None:
+            self._memory.clear()
+            self._memory_head.clear()
+        else:
+            for i in np.atleast_1d(ids):
+                self._memory.pop(int(i), None)
+                self._memory_head.pop(int(i), None)
+
+    def _remember(self, vid: int, pos: np.ndarray, r: np.ndarray) -> None:
+        """Store the obstacle points o = p - r of this step's constraints in vehicle ``vid``'s ring."""
+        k = self.cfg.max_constraints
+        ring = self._memory.get(vid)
+        if ring is None:
+            ring = self._memory[vid] = np.full((self.cfg.memory_steps * k, 3), np.nan)
+            self._memory_head[vid] = 0
+        head = self._memory_head[vid]
+        ring[head * k : (head + 1) * k] = np.nan
+        ring[head * k : head * k + len(r)] = pos - r
+        self._memory_head[vid] = (head + 1) % self.cfg.memory_steps
+
     # ------------------------------------------------------------------------------ batched
     def filter(
         self,
@@ -420,11 +449,14 @@ class HOCBFShield:
         depth: np.ndarray | None = None,
         R_wb: np.ndarray | None = None,  # noqa: N803
         points_w: list[np.ndarray] | None = None,
+        ids: np.ndarray | None = None,
     ) -> ShieldOutput:
         """Filter N commands (N, 4). Obstacles come from depth images (N, 1, H, W) with body poses, or point lists.
 
         Vehicle state: ``pos_w`` (N, 3), ``vel_w`` (N, 3). For depth input, ``R_wb`` (N, 3, 3) is the body
-        attitude when the image was taken (the camera mount comes from the camera config).
+        attitude when the image was taken (the camera mount comes from the camera config). ``ids`` (N,) names
+        the vehicles for the point memory (``memory_steps`` > 0) when the batch is a changing subset; default
+        0..N-1.
         """
         cmd = np.atleast_2d(np.asarray(command, dtype=np.float64))
         num = len(cmd)
@@ -452,7 +484,16 @@ class HOCBFShield:
                 pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel or None)
             else:
                 pts = points_w[i]
-            _, a_mat, b_vec = self.constraints(pts, pos_w[i], vel_w[i], self._a_buf)
+            if self.cfg.memory_steps > 0:
+                vid = int(ids[i]) if ids is not None else i
+                ring = self._memory.get(vid)
+                if ring is not None:
+                    pts = np.concatenate(
+                        (np.asarray(pts, dtype=np.float64).reshape(-1, 3), ring[~np.isnan(ring[:, 0])])
+                    )
+            r_sel, a_mat, b_vec = self.constraints(pts, pos_w[i], vel_w[i], self._a_buf)
+            if self.cfg.memory_steps > 0:
+                self._remember(vid, np.asarray(pos_w[i], dtype=np.float64), r_sel)
             ncon[i] = len(b_vec)
             if len(b_vec) and self._min_buf[0] < 0.0:  # smallest margin A a_raw - b < 0: a row is violated
                 a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])

@@ -233,3 +233,28 @@ def test_ground_points_are_filtered_and_would_otherwise_trigger_level_flight():
     off = HOCBFShield(ShieldConfig(z_window=[-1.0e9, 1.0e9])).filter(cmd, pos, vel, points_w=[floor])
     assert not on.active[0] and on.num_constraints[0] == 0
     assert off.active[0] and off.accel_safe[0, 2] > 0.0  # the unfiltered floor pushes the vehicle up
+
+
+def test_point_memory_keeps_constraints_for_obstacles_that_left_the_view():
+    # Step 1 sees a pole point 1.5 m ahead-left; step 2 sees nothing (the pole left the field of view) while the
+    # vehicle still drifts towards it. Only the shield with memory keeps the constraint (and its row is the same
+    # obstacle point, now relative to the new position). At step 2: r = p - o = (-0.3, -0.4, 0), B = 0,
+    # Bdot = 2 r.v = -1.1, Bddot(a_raw) = 2|v|^2 + 2 r.a_raw = 2.5 - 0.8 g tan(0.3) = 0.07, so the row value
+    # 0.07 + 4 * (-1.1) + 0 < 0: violated.
+    pole = np.array([[1.5, 0.8, 1.5]])
+    cmd = np.array([[G / math.cos(0.3), -0.3, 0.0, 0.0]])  # rolling left, towards +y
+    vel = np.array([[0.5, 1.0, 0.0]])
+    plain = HOCBFShield()
+    mem = HOCBFShield(ShieldConfig(memory_steps=10))
+    for sh in (plain, mem):
+        first = sh.filter(cmd, np.array([[0.0, 0.0, 1.5]]), vel, points_w=[pole])
+        assert first.num_constraints[0] == 1
+    pos2 = np.array([[1.2, 0.4, 1.5]])
+    out_plain = plain.filter(cmd, pos2, vel, points_w=[np.zeros((0, 3))])
+    out_mem = mem.filter(cmd, pos2, vel, points_w=[np.zeros((0, 3))])
+    assert out_plain.num_constraints[0] == 0 and not out_plain.active[0]
+    assert out_mem.num_constraints[0] == 1 and out_mem.active[0]
+    r, _, _ = mem.constraints(pole, pos2[0], vel[0], out_mem.accel_raw[0])
+    np.testing.assert_allclose(r, pos2 - pole)
+    mem.reset([0])
+    assert mem.filter(cmd, pos2, vel, points_w=[np.zeros((0, 3))]).num_constraints[0] == 0

@@ -9,6 +9,8 @@ group     shape                 content
 depth     (N, 1, 60, 100)       noisy normalised depth (policy)
 state     (N, 21)               noisy proprioception and goal (policy), see ``STATE_LAYOUT``
 critic    (N, C)                noise-free privileged vector (critic only)
+teacher   (N, 21 + M)           clean state + privileged local ESDF map (only with ``env.local_map.enabled``;
+                                a privileged teacher's input, see docs/training.md "Teacher-student")
 ========  ====================  ==========================================================
 
 ``extras["time_outs"]`` (N,) marks truncations for bootstrapping; ``extras["log"]`` holds per-step reward-term means
@@ -41,7 +43,7 @@ class RslRlVecEnv(VecEnv):
         self.num_envs = env.num_envs
         self.num_actions = 4
         obs, info = env.reset(seed=env.cfg.seed)
-        self._obs = self._to_tensordict(obs, info["critic"])
+        self._obs = self._to_tensordict(obs, info)
 
     @property
     def max_episode_length(self) -> int:
@@ -63,9 +65,11 @@ class RslRlVecEnv(VecEnv):
             value.detach().cpu().numpy().astype(np.int64), self.env.max_episode_length_buf - 1
         )
 
-    def _to_tensordict(self, obs: dict, critic: np.ndarray) -> TensorDict:
+    def _to_tensordict(self, obs: dict, info: dict) -> TensorDict:
         data = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
-        data["critic"] = torch.from_numpy(np.ascontiguousarray(critic))
+        for k in ("critic", "teacher"):
+            if k in info:
+                data[k] = torch.from_numpy(np.ascontiguousarray(info[k]))
         return TensorDict(data, batch_size=[self.num_envs], device=self.device)
 
     def get_observations(self) -> TensorDict:
@@ -75,7 +79,7 @@ class RslRlVecEnv(VecEnv):
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """Step with actions (N, 4); returns observations, rewards (N,), dones (N,) and extras."""
         obs, rew, term, trunc, info = self.env.step(actions.detach().cpu().numpy().astype(np.float64))
-        self._obs = self._to_tensordict(obs, info["critic"])
+        self._obs = self._to_tensordict(obs, info)
         log = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in info["log"].items()}
         extras = {"time_outs": torch.from_numpy(trunc).to(self.device), "log": log}
         dones = torch.from_numpy(term | trunc).to(self.device)

@@ -25,6 +25,7 @@ import copy
 import dataclasses
 import datetime
 import glob
+import inspect
 import os
 import signal
 import sys
@@ -35,7 +36,7 @@ from typing import Any
 
 import torch
 from rsl_rl.env import VecEnv
-from rsl_rl.runners import OnPolicyRunner
+from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, load_config, require, to_dict, to_yaml
 from envs.navigation import NavConfig
@@ -105,12 +106,20 @@ class CriticConfig:
     """Running mean/std normalisation of the critic input."""
 
 
+def _default_teacher() -> ActorConfig:
+    return ActorConfig(class_name="MLPModel", hidden_dims=[256, 128, 64])
+
+
 @dataclass
 class AlgorithmConfig:
-    """PPO hyper-parameters (rsl-rl ``algorithm`` dict)."""
+    """PPO (or Distillation) hyper-parameters (rsl-rl ``algorithm`` dict).
+
+    Keys the chosen algorithm class does not take are dropped when the runner is built (PPO ignores
+    ``gradient_length`` and ``loss_type``; Distillation ignores the PPO-only keys).
+    """
 
     class_name: str = "PPO"
-    """Algorithm class."""
+    """Algorithm class: ``PPO``, or ``Distillation`` with ``runner.class_name: DistillationRunner``."""
     num_learning_epochs: int = 4
     """Passes over each rollout."""
     num_mini_batches: int = 4
@@ -137,11 +146,18 @@ class AlgorithmConfig:
     """Target KL for the adaptive schedule."""
     normalize_advantage_per_mini_batch: bool = False
     """Normalise advantages per mini-batch instead of over the whole rollout."""
+    gradient_length: int = 24
+    """Distillation only: steps of behaviour-cloning loss accumulated per gradient step (the student's BPTT window)."""
+    loss_type: str = "mse"
+    """Distillation only: ``mse`` or ``huber`` between the student's mean action and the teacher's."""
 
 
 @dataclass
 class RunnerConfig:
-    """rsl-rl ``OnPolicyRunner`` train_cfg (everything but the env)."""
+    """rsl-rl runner train_cfg (everything but the env)."""
+
+    class_name: str = "OnPolicyRunner"
+    """``OnPolicyRunner`` (PPO) or ``DistillationRunner`` (the actor imitates a trained privileged teacher)."""
 
     num_steps_per_env: int = 24
     """Rollout length per env per iteration (also the truncated-BPTT window of the GRU)."""
@@ -156,7 +172,12 @@ class RunnerConfig:
     actor: ActorConfig = field(default_factory=ActorConfig)
     """Actor model."""
     critic: CriticConfig = field(default_factory=CriticConfig)
-    """Critic model."""
+    """Critic model (PPO only)."""
+    teacher: ActorConfig = field(default_factory=_default_teacher)
+    """Distillation only: the teacher model (keys its class does not take, e.g. ``cnn_*`` for ``MLPModel``, are
+    dropped); its weights come from ``teacher_checkpoint``."""
+    teacher_checkpoint: str = ""
+    """Distillation only: the teacher's PPO checkpoint (``model_<it>.pt`` or ``checkpoints/<name>/model.pt``)."""
     init_at_random_ep_len: bool = True
     """Start the first rollout at random episode times, to decorrelate the envs."""
     check_for_nan: bool = True
@@ -207,8 +228,19 @@ class TrainConfig:
             f"must divide env.num_envs ({self.env.num_envs}) for the recurrent generator, got {mb}",
         )
         require(r.algorithm.schedule in ("adaptive", "fixed"), f"{prefix}runner.algorithm.schedule", "adaptive|fixed")
-        for key in ("actor", "critic"):
+        runners = ("OnPolicyRunner", "DistillationRunner")
+        require(r.class_name in runners, f"{prefix}runner.class_name", f"must be one of {runners}, got {r.class_name!r}")
+        distill = r.class_name == "DistillationRunner"
+        algo = "Distillation" if distill else "PPO"
+        require(r.algorithm.class_name == algo, f"{prefix}runner.algorithm.class_name",
+                f"must be {algo!r} with runner.class_name {r.class_name!r}, got {r.algorithm.class_name!r}")  # fmt: skip
+        for key in ("student", "teacher") if distill else ("actor", "critic"):
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
+        require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
+        require(r.algorithm.gradient_length >= 1, f"{prefix}runner.algorithm.gradient_length", "must be >= 1")
+        uses_teacher_obs = any("teacher" in groups for groups in r.obs_groups.values())
+        require(not uses_teacher_obs or self.env.local_map.enabled, f"{prefix}env.local_map.enabled",
+                "must be true when an obs group reads the 'teacher' observation")  # fmt: skip
 
 
 def load_train_config(
@@ -224,10 +256,33 @@ def load_train_config(
     return load_config(TrainConfig, files=files, overrides=overrides, base=base)
 
 
+def _accepted(class_name: str, kwargs: dict) -> dict:
+    """``kwargs`` restricted to what ``class_name``'s constructor takes (all of them if it takes ``**kwargs``)."""
+    from rsl_rl.utils import resolve_callable
+
+    params = inspect.signature(resolve_callable(class_name).__init__).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return kwargs
+    return {k: v for k, v in kwargs.items() if k in params or k == "class_name"}
+
+
 def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
-    """The plain ``train_cfg`` dict ``OnPolicyRunner`` takes (a fresh copy: rsl-rl may mutate it)."""
+    """The plain ``train_cfg`` dict the rsl-rl runner takes (a fresh copy: rsl-rl may mutate it).
+
+    PPO gets ``actor``/``critic``; distillation gets ``student`` (the ``actor`` section: the deployable depth model)
+    and ``teacher``. Model and algorithm keys their classes do not take are dropped.
+    """
     d = to_dict(cfg.runner)
-    d.pop("init_at_random_ep_len")
+    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint"):
+        d.pop(key)
+    teacher = d.pop("teacher")
+    if cfg.runner.class_name == "DistillationRunner":
+        d["student"] = d.pop("actor")
+        d["teacher"] = teacher
+        d.pop("critic")
+    for key in ("actor", "critic", "student", "teacher", "algorithm"):
+        if key in d:
+            d[key] = _accepted(d[key]["class_name"], d[key])
     d["experiment_name"] = cfg.experiment_name
     d["run_name"] = cfg.name
     d["seed"] = cfg.seed
@@ -237,8 +292,8 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
 # ------------------------------------------------------------------------------------------------ runner
 
 
-class ShieldNavRunner(OnPolicyRunner):
-    """rsl-rl's ``OnPolicyRunner``; only ``save`` differs: every checkpoint carries versioned ``infos``."""
+class _VersionedSave:
+    """Mixin over an rsl-rl runner: ``save`` writes versioned ``infos`` (format, resolved config, totals)."""
 
     def __init__(self, env: VecEnv, train_cfg: dict, log_dir: str | None, device: str, config: TrainConfig) -> None:
         """Build the stock runner; ``config`` is stored (resolved) in every checkpoint."""
@@ -257,6 +312,20 @@ class ShieldNavRunner(OnPolicyRunner):
         }
         full.update(infos or {})
         super().save(path, infos=full)
+
+
+class ShieldNavRunner(_VersionedSave, OnPolicyRunner):
+    """rsl-rl's ``OnPolicyRunner`` (PPO); only ``save`` differs: every checkpoint carries versioned ``infos``."""
+
+
+class ShieldNavDistillationRunner(_VersionedSave, DistillationRunner):
+    """rsl-rl's ``DistillationRunner`` (student imitates teacher, DAgger-style); versioned ``infos`` as above."""
+
+
+def make_runner(env: VecEnv, cfg: TrainConfig, log_dir: str | None, device: str) -> OnPolicyRunner:
+    """The runner of ``cfg.runner.class_name`` over ``env``."""
+    cls = ShieldNavDistillationRunner if cfg.runner.class_name == "DistillationRunner" else ShieldNavRunner
+    return cls(env, rsl_rl_train_cfg(cfg), log_dir=log_dir, device=device, config=cfg)
 
 
 def read_checkpoint_infos(path: str | os.PathLike) -> dict:
@@ -336,6 +405,16 @@ def _new_run_dir(cfg: TrainConfig) -> str:
     return path
 
 
+def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> None:
+    """Fail before any work if a file the run needs is missing (the teacher of a new distillation run)."""
+    if cfg.runner.class_name == "DistillationRunner" and resume is None:
+        if not os.path.isfile(cfg.runner.teacher_checkpoint):
+            raise ConfigError(
+                f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
+                "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
+            )
+
+
 def train(
     cfg: TrainConfig,
     resume: str | os.PathLike | None = None,
@@ -357,6 +436,7 @@ def train(
         if not device.startswith("cuda"):
             raise ConfigError("config key 'device': multi-process training (WORLD_SIZE > 1) needs 'cuda'")
         device = f"cuda:{int(os.getenv('LOCAL_RANK', '0'))}"
+    check_files(cfg, resume)
     threads = configure_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed + rank)
     print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)
@@ -377,10 +457,13 @@ def train(
     t0 = time.perf_counter()
     env = env_factory(dataclasses.replace(cfg, device=device))
     print(f"[train] env: {env.num_envs} envs built in {time.perf_counter() - t0:.1f} s", flush=True)
-    runner = ShieldNavRunner(env, rsl_rl_train_cfg(cfg), log_dir=run_dir, device=device, config=cfg)
+    runner = make_runner(env, cfg, log_dir=run_dir, device=device)
     runner.add_git_repo_to_log(REPO_ROOT)
 
     start_it = 0
+    if cfg.runner.class_name == "DistillationRunner" and resume is None:
+        runner.load(cfg.runner.teacher_checkpoint, map_location=device)  # actor weights -> teacher only
+        print(f"[train] teacher loaded from {cfg.runner.teacher_checkpoint}", flush=True)
     if resume is not None:
         infos = runner.load(str(resume), map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
@@ -422,10 +505,14 @@ def train(
         runner.logger.stop_logging_writer()
         if runner.logger.writer is not None and hasattr(runner.logger.writer, "close"):
             runner.logger.writer.close()
-        from shield_nav.models import export_policy
+        from shield_nav.models import DepthGRUModel, export_policy
 
-        paths = export_policy(runner.alg.get_policy(), os.path.join(run_dir, "exported"))
-        print(f"[train] exported {paths['jit']} and {paths['onnx']}", flush=True)
+        policy = runner.alg.get_policy()
+        if isinstance(policy, DepthGRUModel):
+            paths = export_policy(policy, os.path.join(run_dir, "exported"))
+            print(f"[train] exported {paths['jit']} and {paths['onnx']}", flush=True)
+        else:  # a privileged teacher: not deployable (it reads the local ESDF map), so nothing is exported
+            print(f"[train] not exported: the policy is a {type(policy).__name__}, not a DepthGRUModel", flush=True)
         print(f"[train] {'interrupted' if interrupted else 'finished'} at iteration {it}: {run_dir}", flush=True)
     if interrupted:
         raise SystemExit(128 + int(stop.signum or signal.SIGINT))
@@ -479,6 +566,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cfg = config_from_args(args)
+        check_files(cfg, args.resume)
     except (ConfigError, ValueError) as err:
         print(f"train.py: error: {err}", file=sys.stderr)
         return 2

@@ -183,6 +183,27 @@ class RandomizationConfig:
 
 
 @dataclass
+class LocalMapConfig:
+    """The privileged local map of the teacher observation: the ESDF sampled on a grid around the vehicle.
+
+    Grid points are ``pos + Rz(psi) [x, y, 0] + [0, 0, z]`` for every (x, y, z) in ``xs`` x ``ys`` x ``zs`` (the
+    heading frame: x forward, y left, level). Each value is ``clip(esdf, -clip, clip) / clip``. The map sees through
+    walls and has no noise: it is privileged information for a teacher (``info["teacher"]``), never the student.
+    """
+
+    enabled: bool = False
+    """Compute ``info["teacher"]`` (the clean state followed by the local map) every step."""
+    xs: list[float] = field(default_factory=lambda: [-1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.5, 8.0])
+    """Forward offsets [m]."""
+    ys: list[float] = field(default_factory=lambda: [-4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0])
+    """Lateral offsets (left positive) [m]."""
+    zs: list[float] = field(default_factory=lambda: [-0.6, 0.0, 0.6])
+    """Vertical offsets [m]."""
+    clip: float = 3.0
+    """ESDF values are clipped to [-clip, clip] and divided by clip [m]."""
+
+
+@dataclass
 class NavConfig:
     """The whole task. See docs/task.md for the MDP in one page."""
 
@@ -214,6 +235,11 @@ class NavConfig:
     """Reset finished envs inside ``step`` (same-step autoreset). False: finished envs hover, frozen, until reset."""
     critic_depth_pool: list[int] = field(default_factory=lambda: [6, 10])
     """The critic sees the clean depth min-pooled to this (rows, cols) grid."""
+    render_depth: bool = True
+    """Render the depth camera and apply the sensor model. False (privileged-teacher training): the depth group
+    is all zeros, the critic's pooled depth is constant, and the step costs about half as much."""
+    local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
+    """Privileged local ESDF map for a teacher policy (``info["teacher"]``)."""
 
     def validate(self, prefix: str = "") -> None:
         """Cross-field checks naming the key."""
@@ -250,3 +276,7 @@ class NavConfig:
                 "must be in (0, vehicle.controller.max_tilt_deg]")  # fmt: skip
         require(self.collision_margin >= 0, f"{prefix}collision_margin", "must be >= 0")
         require(len(self.critic_depth_pool) == 2, f"{prefix}critic_depth_pool", "must be [rows, cols]")
+        lm = self.local_map
+        for k in ("xs", "ys", "zs"):
+            require(len(getattr(lm, k)) >= 1, f"{prefix}local_map.{k}", "must hold at least one offset")
+        require(lm.clip > 0, f"{prefix}local_map.clip", "must be > 0")

@@ -145,6 +145,12 @@ class NavigationEnv(VectorEnv):
         if H % pr or W % pc:
             raise ValueError(f"critic_depth_pool {cfg.critic_depth_pool} must divide the image {H}x{W}")
         self.critic_dim = STATE_DIM + sum(k for _, k, _ in PRIV_EXTRA) + pr * pc
+        lm = cfg.local_map
+        gx, gy, gz = np.meshgrid(lm.xs, lm.ys, lm.zs, indexing="ij")
+        self._map_offsets = np.stack((gx.ravel(), gy.ravel(), gz.ravel()), axis=1)  # (M, 3), heading frame
+        self.teacher_dim = STATE_DIM + len(self._map_offsets) if lm.enabled else 0
+        self._teacher: np.ndarray | None = None
+        self._zero_depth = np.zeros((n, 1, H, W), dtype=np.float32)
         # ---------------------------------------------------------------- per-env buffers
         self.scene_id_buf = np.zeros(n, dtype=np.int64)
         self.level_buf = np.zeros(n, dtype=np.int64)
@@ -203,7 +209,7 @@ class NavigationEnv(VectorEnv):
         self._reset_idx(env_ids, **options)
         self._update_fields()
         obs = self._get_observations(force_all=True)
-        return obs, {"critic": self._critic.copy()}
+        return obs, self._privileged_info()
 
     def step(
         self, actions: np.ndarray, commands: np.ndarray | None = None
@@ -258,8 +264,15 @@ class NavigationEnv(VectorEnv):
             else:
                 self.frozen_buf[done_ids] = True
         obs = self._get_observations()
-        info["critic"] = self._critic.copy()
+        info.update(self._privileged_info())
         return obs, reward, terminated, truncated, info
+
+    def _privileged_info(self) -> dict[str, np.ndarray]:
+        """``critic`` (N, C) always; ``teacher`` (N, T) when ``local_map.enabled``."""
+        out = {"critic": self._critic.copy()}
+        if self._teacher is not None:
+            out["teacher"] = self._teacher.copy()
+        return out
 
     # ================================================================================================ step stages
     def _pre_physics_step(self, action: np.ndarray, commands: np.ndarray | None = None) -> np.ndarray:
@@ -360,14 +373,18 @@ class NavigationEnv(VectorEnv):
         cfg = self.cfg
         pos, esdf, grad, phi = self._field_cache
         r_wb = self.vehicles.R_wb
-        due = np.ones(self.num_envs, dtype=bool) if force_all else self.noise.due()
-        due &= ~self.frozen_buf | force_all
-        ids = np.flatnonzero(due)
-        if len(ids):
-            self.clean_depth_buf[ids] = self.camera.render(pos[ids], r_wb[ids], self.scene_id_buf[ids])
-        noisy = self.noise.apply(self.clean_depth_buf, self._rng)
-        self.sensor_depth_buf = noisy  # metric depth as the sensor reports it (what the shield may use)
-        depth = normalize_depth(noisy, cfg.camera)
+        if cfg.render_depth:
+            due = np.ones(self.num_envs, dtype=bool) if force_all else self.noise.due()
+            due &= ~self.frozen_buf | force_all
+            ids = np.flatnonzero(due)
+            if len(ids):
+                self.clean_depth_buf[ids] = self.camera.render(pos[ids], r_wb[ids], self.scene_id_buf[ids])
+            noisy = self.noise.apply(self.clean_depth_buf, self._rng)
+            self.sensor_depth_buf = noisy  # metric depth as the sensor reports it (what the shield may use)
+            depth = normalize_depth(noisy, cfg.camera)
+        else:
+            self.sensor_depth_buf = self.clean_depth_buf  # never rendered: max range everywhere
+            depth = self._zero_depth
         clean_state = self._state(pos, r_wb, self.vehicles.vel_b)
         # Policy state: observation noise on velocity and attitude.
         rnd = cfg.randomization
@@ -393,8 +410,24 @@ class NavigationEnv(VectorEnv):
             ),
             axis=1,
         ).astype(np.float32)
+        if cfg.local_map.enabled:
+            self._teacher = np.concatenate((clean_state, self._local_map(pos, r_wb)), axis=1).astype(np.float32)
         self._obs = {"depth": depth, "state": state.astype(np.float32)}
         return self._obs
+
+    def _local_map(self, pos: np.ndarray, r_wb: np.ndarray) -> np.ndarray:
+        """The ESDF on the heading-frame grid of :class:`LocalMapConfig` (N, M), clipped and scaled to [-1, 1]."""
+        off = self._map_offsets
+        psi = np.arctan2(r_wb[:, 1, 0], r_wb[:, 0, 0])
+        c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
+        pts = np.empty((self.num_envs, len(off), 3))
+        pts[..., 0] = pos[:, 0:1] + c * off[:, 0] - s * off[:, 1]
+        pts[..., 1] = pos[:, 1:2] + s * off[:, 0] + c * off[:, 1]
+        pts[..., 2] = pos[:, 2:3] + off[:, 2]
+        ids = np.repeat(self.scene_id_buf, len(off))
+        esdf = self.field_stack.esdf(ids, pts.reshape(-1, 3)).reshape(self.num_envs, len(off))
+        clip = self.cfg.local_map.clip
+        return np.clip(esdf, -clip, clip) / clip
 
     def _state(self, pos: np.ndarray, r_wb: np.ndarray, vel_b: np.ndarray) -> np.ndarray:
         """The (N, 21) state vector of :data:`STATE_LAYOUT` from the given (possibly noisy) quantities."""

@@ -269,3 +269,30 @@ def test_command_path_round_trips_the_action_mapping():
     np.testing.assert_allclose(env.command_to_action(cmd), a, atol=1e-12)
     env.step(a, commands=cmd)
     np.testing.assert_allclose(env.exec_action_buf, a, atol=1e-12)
+
+
+def test_teacher_local_map_is_the_esdf_on_the_heading_frame_grid():
+    lm = {"local_map.enabled": True, "local_map.xs": [0.0, 2.0], "local_map.ys": [-1.0, 1.5], "local_map.zs": [0.0, 0.5],
+          "local_map.clip": 3.0, "render_depth": False}  # fmt: skip
+    env = NavigationEnv(num_envs=2, **QUIET, **lm)
+    start = np.array([[1.0, -3.0, 1.2], [1.0, 4.0, 1.5]])
+    yaw = np.array([math.pi / 2, 0.0])  # env 0 heads +y (forward x -> world +y, left y -> world -x), env 1 heads +x
+    _, info = env.reset(seed=0, options={"scene_ids": np.array([0, 1]), "start": start, "yaw": yaw})
+    teacher = info["teacher"]
+    assert teacher.shape == (2, STATE_DIM + 8) == (2, env.teacher_dim)
+    np.testing.assert_allclose(teacher[:, :STATE_DIM], info["critic"][:, :STATE_DIM], atol=1e-6)  # clean state
+    # Grid order: xs outermost, then ys, then zs (meshgrid "ij"); world offsets written out by hand.
+    offsets = [(x, y, z) for x in (0.0, 2.0) for y in (-1.0, 1.5) for z in (0.0, 0.5)]
+    pts0 = np.array([[1.0 - y, -3.0 + x, 1.2 + z] for x, y, z in offsets])
+    pts1 = np.array([[1.0 + x, 4.0 + y, 1.5 + z] for x, y, z in offsets])
+    pos = env.local_pos
+    np.testing.assert_allclose(pos, start, atol=1e-9)
+    for k, pts in enumerate((pts0, pts1)):
+        want = np.clip(env.field_stack.esdf(np.full(8, k), pts), -3.0, 3.0) / 3.0
+        np.testing.assert_allclose(teacher[k, STATE_DIM:], want, atol=1e-6)
+    # Nothing is rendered: the depth group is all zeros, also after a step.
+    obs, *_, info = env.step(np.zeros((2, 4)))
+    assert not obs["depth"].any() and info["teacher"].shape == (2, env.teacher_dim)
+    # Without the map there is no teacher group.
+    _, info = NavigationEnv(num_envs=2, **SMALL).reset(seed=0)
+    assert "teacher" not in info

@@ -111,3 +111,41 @@ def test_sigterm_saves_a_checkpoint_and_exports(tmp_path):
     infos = read_checkpoint_infos(os.path.join(run, last))
     assert infos["interrupted"] is True
     assert os.path.isfile(os.path.join(run, "exported", "policy.onnx"))
+
+
+def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
+    """A privileged MLP teacher (PPO, nothing rendered), then the CNN+GRU student distilled from it."""
+    root = str(tmp_path / "logs")
+    small = ["--num-envs", "4", "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
+             "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"]  # fmt: skip
+    res = run_train(["--config", "configs/train/teacher_dijkstra_cbf.yaml", *small, "runner.save_interval=1"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "not exported: the policy is a MLPModel" in res.stdout  # a privileged teacher is not deployable
+    (teacher_dir,) = [os.path.join(root, "shield_nav", d) for d in os.listdir(os.path.join(root, "shield_nav"))]
+    teacher_ckpt = os.path.join(teacher_dir, "model_0.pt")
+    assert not os.path.exists(os.path.join(teacher_dir, "exported"))
+
+    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", *small,
+                     f"runner.teacher_checkpoint={teacher_ckpt}"])  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    (student_dir,) = [d for d in os.listdir(os.path.join(root, "shield_nav")) if d.endswith("_distilled")]
+    student_dir = os.path.join(root, "shield_nav", student_dir)
+    ckpt = torch.load(os.path.join(student_dir, "model_0.pt"), weights_only=False)
+    teacher = torch.load(teacher_ckpt, weights_only=False)["actor_state_dict"]
+    for k, v in teacher.items():  # the teacher's weights were loaded, unchanged by distillation
+        torch.testing.assert_close(ckpt["teacher_state_dict"][k], v)
+    assert scalar_steps(student_dir, "Loss/behavior") == [0]
+    sess = ort.InferenceSession(os.path.join(student_dir, "exported", "policy.onnx"), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()][1] == "depth"  # the deployable student reads depth, not the map
+
+
+def test_distillation_inputs_fail_fast(tmp_path):
+    root = str(tmp_path / "logs")
+    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", "--log-dir", root,
+                     "--set", "runner.teacher_checkpoint=nowhere/model.pt"], timeout=120)  # fmt: skip
+    assert res.returncode == 2 and "runner.teacher_checkpoint" in res.stderr and "nowhere/model.pt" in res.stderr
+    res = run_train([*TINY, "--log-dir", root, "--set", "runner.class_name=DistillationRunner"], timeout=120)
+    assert res.returncode == 2 and "runner.algorithm.class_name" in res.stderr
+    res = run_train([*TINY, "--log-dir", root, "--set", "runner.obs_groups.actor=[teacher]"], timeout=120)
+    assert res.returncode == 2 and "env.local_map.enabled" in res.stderr
+    assert not os.path.exists(root)  # nothing was started

@@ -229,11 +229,14 @@ class TrainConfig:
         )
         require(r.algorithm.schedule in ("adaptive", "fixed"), f"{prefix}runner.algorithm.schedule", "adaptive|fixed")
         runners = ("OnPolicyRunner", "DistillationRunner")
-        require(r.class_name in runners, f"{prefix}runner.class_name", f"must be one of {runners}, got {r.class_name!r}")
+        require(
+            r.class_name in runners, f"{prefix}runner.class_name", f"must be one of {runners}, got {r.class_name!r}"
+        )
         distill = r.class_name == "DistillationRunner"
         algo = "Distillation" if distill else "PPO"
-        require(r.algorithm.class_name == algo, f"{prefix}runner.algorithm.class_name",
-                f"must be {algo!r} with runner.class_name {r.class_name!r}, got {r.algorithm.class_name!r}")  # fmt: skip
+        got = r.algorithm.class_name
+        require(got == algo, f"{prefix}runner.algorithm.class_name",
+                f"must be {algo!r} with runner.class_name {r.class_name!r}, got {got!r}")  # fmt: skip
         for key in ("student", "teacher") if distill else ("actor", "critic"):
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
         require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
@@ -407,9 +410,9 @@ def _new_run_dir(cfg: TrainConfig) -> str:
 
 def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> None:
     """Fail before any work if a file the run needs is missing (the teacher of a new distillation run)."""
-    if cfg.runner.class_name == "DistillationRunner" and resume is None:
-        if not os.path.isfile(cfg.runner.teacher_checkpoint):
-            raise ConfigError(
+    distill = cfg.runner.class_name == "DistillationRunner"
+    if distill and resume is None and not os.path.isfile(cfg.runner.teacher_checkpoint):
+        raise ConfigError(
                 f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
                 "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
             )

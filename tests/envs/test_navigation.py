@@ -272,8 +272,8 @@ def test_command_path_round_trips_the_action_mapping():
 
 
 def test_teacher_local_map_is_the_esdf_on_the_heading_frame_grid():
-    lm = {"local_map.enabled": True, "local_map.xs": [0.0, 2.0], "local_map.ys": [-1.0, 1.5], "local_map.zs": [0.0, 0.5],
-          "local_map.clip": 3.0, "render_depth": False}  # fmt: skip
+    lm = {"local_map.enabled": True, "local_map.xs": [0.0, 2.0], "local_map.ys": [-1.0, 1.5],
+          "local_map.zs": [0.0, 0.5], "local_map.clip": 3.0, "render_depth": False}  # fmt: skip
     env = NavigationEnv(num_envs=2, **QUIET, **lm)
     start = np.array([[1.0, -3.0, 1.2], [1.0, 4.0, 1.5]])
     yaw = np.array([math.pi / 2, 0.0])  # env 0 heads +y (forward x -> world +y, left y -> world -x), env 1 heads +x

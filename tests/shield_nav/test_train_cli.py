@@ -135,7 +135,8 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     for k, v in teacher.items():  # the teacher's weights were loaded, unchanged by distillation
         torch.testing.assert_close(ckpt["teacher_state_dict"][k], v)
     assert scalar_steps(student_dir, "Loss/behavior") == [0]
-    sess = ort.InferenceSession(os.path.join(student_dir, "exported", "policy.onnx"), providers=["CPUExecutionProvider"])
+    onnx_path = os.path.join(student_dir, "exported", "policy.onnx")
+    sess = ort.InferenceSession(onnx_path, providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()][1] == "depth"  # the deployable student reads depth, not the map
 
 

@@ -7,6 +7,11 @@ with ``train.py --resume``), the resolved training config (``params/config.yaml`
 (``policy.onnx`` and TorchScript ``policy.pt``), the run's tensorboard scalars up to that iteration
 (``curves.csv``, the reference for ``shield_nav.compare_runs``) and a ``meta.json`` (iteration, env steps,
 wall time, source run, sha256 of every file).
+
+A distillation checkpoint packages its student (the deployable CNN+GRU). A privileged teacher (an ``MLPModel`` over
+the local ESDF map) is packaged without exports: it cannot fly from depth, it is kept to distil from
+(``runner.teacher_checkpoint: checkpoints/teacher_<formulation>/model.pt``); ``meta.json`` says
+``"deployable": false``.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import os
 import shutil
 
 import torch
+from rsl_rl.utils import resolve_callable
 from tensordict import TensorDict
 
 from envs.config import to_yaml
@@ -35,29 +41,33 @@ def _sha256(path: str) -> str:
     return h.hexdigest()
 
 
-def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel, TrainConfig, dict]:
-    """Rebuild the trained actor of a checkpoint from its stored config (no env needed)."""
+def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainConfig, dict]:
+    """Rebuild the deployable actor of a checkpoint from its stored config (no env needed).
+
+    PPO checkpoints give their actor, distillation checkpoints their student; a privileged teacher (its actor is not
+    a ``DepthGRUModel``) gives ``None``.
+    """
     ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     infos = read_checkpoint_infos(ckpt_path)
     cfg = load_train_config(overrides=infos["config"]) if isinstance(infos.get("config"), dict) else None
     if cfg is None:
         raise ValueError(f"{ckpt_path}: the checkpoint carries no resolved config")
-    cam = cfg.env.camera
-    n_crit = ckpt["critic_state_dict"]["mlp.0.weight"].shape[1] if "mlp.0.weight" in ckpt["critic_state_dict"] else 1
-    obs = TensorDict(
-        {
-            "depth": torch.zeros(1, 1, cam.height, cam.width),
-            "state": torch.zeros(1, STATE_DIM),
-            "critic": torch.zeros(1, n_crit),
-        },
-        batch_size=[1],
-    )
+    meta = {"iter": int(ckpt["iter"]), **{k: v for k, v in infos.items() if k != "config"}}
+    distilled = cfg.runner.class_name == "DistillationRunner"
+    obs_set, key = ("student", "student_state_dict") if distilled else ("actor", "actor_state_dict")
     train_cfg = rsl_rl_train_cfg(cfg)
-    actor_kwargs = {k: v for k, v in train_cfg["actor"].items() if k != "class_name"}
-    model = DepthGRUModel(obs, train_cfg["obs_groups"], "actor", 4, **actor_kwargs)
-    model.load_state_dict(ckpt["actor_state_dict"])
+    if resolve_callable(train_cfg[obs_set]["class_name"]) is not DepthGRUModel:
+        return None, cfg, meta
+    cam = cfg.env.camera
+    obs = TensorDict(
+        {"depth": torch.zeros(1, 1, cam.height, cam.width), "state": torch.zeros(1, STATE_DIM)}, batch_size=[1]
+    )
+    groups = {obs_set: cfg.runner.obs_groups[obs_set]}
+    actor_kwargs = {k: v for k, v in train_cfg[obs_set].items() if k != "class_name"}
+    model = DepthGRUModel(obs, groups, obs_set, 4, **actor_kwargs)
+    model.load_state_dict(ckpt[key])
     model.eval()
-    return model, cfg, {"iter": int(ckpt["iter"]), **{k: v for k, v in infos.items() if k != "config"}}
+    return model, cfg, meta
 
 
 def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
@@ -68,7 +78,8 @@ def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
     shutil.copyfile(ckpt_path, os.path.join(out, "model.pt"))
     with open(os.path.join(out, "params", "config.yaml"), "w") as fh:
         fh.write(to_yaml(cfg))
-    export_policy(model, out)
+    if model is not None:
+        export_policy(model, out)
     run_dir = os.path.dirname(os.path.abspath(ckpt_path))
     try:
         series = read_events(run_dir)
@@ -80,6 +91,9 @@ def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
     meta.update(
         {
             "name": name,
+            "deployable": model is not None,
+            "kind": "distilled" if cfg.runner.class_name == "DistillationRunner" else
+                    ("ppo" if model is not None else "privileged_teacher"),
             "source_run": os.path.relpath(run_dir),
             "source_checkpoint": os.path.basename(ckpt_path),
             "sha256": {f: _sha256(os.path.join(out, f)) for f in files},

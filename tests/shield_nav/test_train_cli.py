@@ -139,6 +139,27 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     sess = ort.InferenceSession(onnx_path, providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()][1] == "depth"  # the deployable student reads depth, not the map
 
+    # Packaging: the teacher without exports (not deployable), the student with an ONNX that matches its weights.
+    from shield_nav.package import actor_from_checkpoint, package
+
+    out_t = package(teacher_ckpt, "teacher", str(tmp_path / "ck"))
+    assert "policy.onnx" not in os.listdir(out_t) and actor_from_checkpoint(teacher_ckpt)[0] is None
+    out_s = package(os.path.join(student_dir, "model_0.pt"), "student", str(tmp_path / "ck"))
+    model, _, meta = actor_from_checkpoint(os.path.join(out_s, "model.pt"))
+    assert meta["iter"] == 0
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(v, ckpt["student_state_dict"][k])
+    sess = ort.InferenceSession(os.path.join(out_s, "policy.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(1)
+    state = rng.normal(size=(2, 21)).astype(np.float32)
+    depth = rng.uniform(0, 1, (2, 1, 60, 100)).astype(np.float32)
+    act, _ = sess.run(None, {"obs": state, "depth": depth, "h_in": np.zeros((1, 2, 128), np.float32)})
+    from tensordict import TensorDict
+
+    with torch.no_grad():
+        ref = model(TensorDict({"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)}, batch_size=[2]))
+    np.testing.assert_allclose(act, ref.numpy(), atol=1e-5)
+
 
 def test_distillation_inputs_fail_fast(tmp_path):
     root = str(tmp_path / "logs")

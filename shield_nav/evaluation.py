@@ -86,6 +86,11 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "dijkstra_cbf": RowConfig("Dijkstra + CBF", "policy", "dijkstra_cbf"),
     "full": RowConfig("Ours (Full) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf", shield=True),
     "inflation": RowConfig("Geometric inflation (0.4 m)", "policy", "inflation"),
+    "distance_distilled": RowConfig("Distance (distilled)", "policy", "distance_distilled"),
+    "dijkstra_distilled": RowConfig("Dijkstra (distilled)", "policy", "dijkstra_distilled"),
+    "dijkstra_cbf_distilled": RowConfig("Dijkstra + CBF (distilled)", "policy", "dijkstra_cbf_distilled"),
+    "full_distilled": RowConfig("Full (distilled) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf_distilled",
+                                shield=True),  # fmt: skip
     "oracle": RowConfig("Oracle (privileged map)", "oracle"),
     "reactive": RowConfig("Reactive depth primitives", "reactive"),
     "goal_seeking": RowConfig("Goal-seeking (no shield)", "goal"),
@@ -117,7 +122,11 @@ class EvalConfig:
     rows: dict[str, RowConfig] = field(default_factory=dict)
     """Extra (or overriding) row definitions."""
     checkpoints: dict[str, str] = field(
-        default_factory=lambda: {k: f"checkpoints/{k}" for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation")}
+        default_factory=lambda: {
+            k: f"checkpoints/{k}"
+            for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
+                      "dijkstra_cbf_distilled")  # fmt: skip
+        }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""
     missing_checkpoints: str = "error"

@@ -198,7 +198,8 @@ def test_scripted_flights_shield_prevents_collisions(kind):
     safe = fly(kind, speeds, shielded=True, duration=4.5)
     assert not safe.collided.any()
     # Measured minimum distances over 4.5 s from the vehicle centre to the surface, pole / wall:
-    # 3 m/s 1.30/1.33, 5 m/s 0.79/0.87, 7 m/s 0.68/0.78, 9 m/s 0.57/0.69. The controller keeps pushing, so the
+    # 3 m/s 0.64/0.64, 5 m/s 0.51/0.51, 7 m/s 0.50/0.50, 9 m/s 0.50/0.50 (p1 = p2 = 4). The controller keeps
+    # pushing, so the
     # distance creeps towards r_safe = 0.5 m; assert r_safe minus 0.1 m for the point cloud's pixel sampling
     # (the nearest surface point can fall between rays), and well clear of contact at 0.2 m.
     assert np.all(safe.min_distance > 0.4)
@@ -212,7 +213,7 @@ def test_selected_rows_equal_hocbf_rows_and_one_per_sector():
     # Three points ahead-left (azimuth 0..3 deg, one sector), one to the right (-90 deg), one behind (180 deg).
     pts = np.array([[3.0, 0.1, 1.0], [2.5, 0.0, 1.0], [4.0, 0.2, 1.0], [0.0, -2.0, 1.0], [-3.0, 0.0, 1.0]])
     r, a_mat, b_vec = shield.constraints(pts, pos, vel, np.zeros(3))
-    a_ref, b_ref = hocbf_rows(r, vel, 4.0, 4.0, 0.5)
+    a_ref, b_ref = hocbf_rows(r, vel, shield.cfg.alpha0, shield.cfg.alpha1, 0.5)
     np.testing.assert_allclose(a_mat, a_ref)
     np.testing.assert_allclose(b_vec, b_ref)
     # Of the three points ahead only the tightest (the nearest, 2.5 m) is kept.

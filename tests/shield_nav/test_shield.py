@@ -199,8 +199,8 @@ def test_scripted_flights_shield_prevents_collisions(kind):
     assert not safe.collided.any()
     # Measured minimum distances over 4.5 s from the vehicle centre to the surface, pole / wall:
     # 3 m/s 0.64/0.64, 5 m/s 0.51/0.51, 7 m/s 0.50/0.50, 9 m/s 0.50/0.50 (p1 = p2 = 4). The controller keeps
-    # pushing, so the distance creeps towards r_safe = 0.5 m; assert r_safe minus 0.1 m for the point cloud's pixel sampling
-    # (the nearest surface point can fall between rays), and well clear of contact at 0.2 m.
+    # pushing, so the distance creeps towards r_safe = 0.5 m; assert r_safe minus 0.1 m for the point cloud's
+    # pixel sampling (the nearest surface point can fall between rays), and well clear of contact at 0.2 m.
     assert np.all(safe.min_distance > 0.4)
     assert safe.active.any(axis=0).all()
 

@@ -1,5 +1,8 @@
 """Training throughput: a few PPO iterations of the ``dijkstra_cbf`` config, end to end (collection + learning).
 
+Any training config works (``--config configs/train/teacher_dijkstra_cbf.yaml`` measures a privileged teacher;
+a ``distill_*.yaml`` config needs its teacher checkpoint).
+
 ``python -m shield_nav.bench train --json [--num-envs N] [--iterations K] [--warmup W] [--config PATH]``.
 Runs rsl-rl's ``OnPolicyRunner`` exactly as ``train.py`` builds it (no log folder), drops ``W`` warm-up iterations
 (first-call allocations, numba/oneDNN warm-up), and reports the mean over the remaining ones:
@@ -17,11 +20,11 @@ import torch
 from shield_nav.bench.common import emit, machine, parser, peak_rss_mb
 from shield_nav.training import (
     REPO_ROOT,
-    ShieldNavRunner,
+    check_files,
     configure_threads,
     load_train_config,
     make_env,
-    rsl_rl_train_cfg,
+    make_runner,
 )
 
 
@@ -36,13 +39,17 @@ def main(argv: list[str] | None = None) -> dict:
     args = p.parse_args(argv)
 
     cfg = load_train_config(args.config, overrides=[f"env.num_envs={args.num_envs}", *args.set])
+    check_files(cfg)  # a distillation config needs its teacher checkpoint
     threads = configure_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
     t0 = time.perf_counter()
     env = make_env(cfg)
     build_s = time.perf_counter() - t0
-    runner = ShieldNavRunner(env, rsl_rl_train_cfg(cfg), log_dir=None, device=cfg.device, config=cfg)
+    runner = make_runner(env, cfg, log_dir=None, device=cfg.device)
+    if cfg.runner.class_name == "DistillationRunner":
+        runner.load(cfg.runner.teacher_checkpoint)
     actor = runner.alg.get_policy()
+    critic = getattr(runner.alg, "critic", None)  # PPO's; distillation has none
 
     times: list[tuple[float, float]] = []
     log_fn = runner.logger.log
@@ -70,7 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
         "env_steps_per_s": round(steps / (collect_s + learn_s), 1),
         "collect_env_steps_per_s": round(steps / collect_s, 1),
         "actor_params": sum(q.numel() for q in actor.parameters()),
-        "critic_params": sum(q.numel() for q in runner.alg.critic.parameters()),
+        "critic_params": sum(q.numel() for q in critic.parameters()) if critic is not None else 0,
         "torch_threads": threads,
         "env_build_s": round(build_s, 2),
         "peak_rss_mb": round(peak_rss_mb(), 1),

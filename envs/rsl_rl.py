@@ -72,6 +72,20 @@ class RslRlVecEnv(VecEnv):
                 data[k] = torch.from_numpy(np.ascontiguousarray(info[k]))
         return TensorDict(data, batch_size=[self.num_envs], device=self.device)
 
+    @property
+    def curriculum_levels(self) -> list[int]:
+        """Each env's curriculum level (scene index into the training list)."""
+        return self.env.level_buf.tolist()
+
+    def set_curriculum_levels(self, levels: list[int]) -> None:
+        """Install saved levels (a resumed run) and restart every episode on its level."""
+        lv = np.asarray(levels, dtype=np.int64)
+        if lv.shape != (self.num_envs,) or lv.min() < 0 or lv.max() >= len(self.env.scenes):
+            raise ValueError(f"curriculum levels must be {self.num_envs} ints in 0..{len(self.env.scenes) - 1}")
+        self.env.level_buf[:] = lv
+        obs, info = self.env.reset()
+        self._obs = self._to_tensordict(obs, info)
+
     def get_observations(self) -> TensorDict:
         """The current observation groups."""
         return self._obs

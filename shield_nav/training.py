@@ -313,6 +313,8 @@ class _VersionedSave:
             "torch_version": torch.__version__,
             "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
         }
+        if hasattr(self.env, "curriculum_levels"):
+            full["curriculum_levels"] = self.env.curriculum_levels  # restored by --resume
         full.update(infos or {})
         super().save(path, infos=full)
 
@@ -473,6 +475,10 @@ def train(
         runner.current_learning_iteration = start_it
         runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))
         runner.logger.tot_time = float(infos.get("tot_time", 0.0))
+        levels = infos.get("curriculum_levels")
+        if levels is not None and hasattr(env, "set_curriculum_levels") and len(levels) == env.num_envs:
+            env.set_curriculum_levels(levels)
+            print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
         print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
     remaining = cfg.max_iterations - start_it
 

@@ -296,3 +296,12 @@ def test_teacher_local_map_is_the_esdf_on_the_heading_frame_grid():
     # Without the map there is no teacher group.
     _, info = NavigationEnv(num_envs=2, **SMALL).reset(seed=0)
     assert "teacher" not in info
+
+
+def test_rsl_rl_adapter_restores_curriculum_levels():
+    vec = RslRlVecEnv(NavigationEnv(num_envs=4, **{"scenes.indices": [0, 1, 2]}))
+    vec.set_curriculum_levels([2, 0, 1, 2])
+    assert vec.curriculum_levels == [2, 0, 1, 2]
+    np.testing.assert_array_equal(vec.env.scene_id_buf, [2, 0, 1, 2])  # every episode restarted on its level
+    with pytest.raises(ValueError, match="curriculum levels"):
+        vec.set_curriculum_levels([0, 3, 0, 0])

@@ -66,6 +66,8 @@ def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_pat
     res = run_train(["--resume", os.path.join(run, "model_1.pt"), "--max-iterations", "3"])
     assert res.returncode == 0, res.stderr[-3000:]
     assert "continuing at iteration 2" in res.stdout
+    assert "curriculum levels restored" in res.stdout
+    assert len(read_checkpoint_infos(os.path.join(run, "model_1.pt"))["curriculum_levels"]) == 4
     assert only_run_dir(root) == run
     ckpt = torch.load(os.path.join(run, "model_2.pt"), weights_only=False)
     assert ckpt["iter"] == 2

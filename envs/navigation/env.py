@@ -243,7 +243,9 @@ class NavigationEnv(VectorEnv):
         self.episode_length_buf += 1
         self._update_fields()
         collision, oob, success, timeout = self._get_dones(collided)
-        terms = self._get_rewards(collision, success)
+        # Leaving the flight volume is a failure like a collision: without the penalty, ending the episode is a free
+        # escape from the negative shaping terms, and PPO with a long horizon learns to fly out of bounds.
+        terms = self._get_rewards(collision | oob, success)
         reward = terms @ self._scales
         terminated = (collision | oob | success) & ~self.frozen_buf
         truncated = timeout & ~terminated & ~self.frozen_buf

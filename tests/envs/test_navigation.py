@@ -121,6 +121,20 @@ def test_collision_terminates_is_not_a_timeout_and_agrees_with_the_esdf(quiet_en
     assert abs(min_clear - env.cfg.vehicle.airframe.collision_radius) < 0.1
 
 
+def test_out_of_bounds_ends_the_episode_with_the_collision_penalty(quiet_env):
+    env = quiet_env
+    opts = {"scene_ids": [0] * 4, "start": np.tile([0.5, 0.0, 1.5], (4, 1)), "goal": np.tile([63.5, 0.0, 1.5], (4, 1)),
+            "speed": [4.0] * 4, "yaw": [math.pi] * 4}  # fmt: skip
+    env.reset(seed=1, options=opts)
+    env.vehicles.reset(np.arange(4), env.vehicles.pos_w.copy(), vel_w=np.tile([-10.0, 0, 0], (4, 1)))
+    for _ in range(100):  # x < -3 m (the margin) after ~0.35 s
+        _, rew, term, trunc, info = env.step(np.zeros((4, 4)))
+        if term[0]:
+            break
+    assert term[0] and info["out_of_bounds"][0] and not info["collision"][0] and not trunc[0]
+    assert rew[0] <= -env.cfg.reward.scales["collision"] + 1.0  # leaving the volume is not a free exit
+
+
 def test_success_at_the_goal(quiet_env):
     env = quiet_env
     goal = np.array([63.5, 0.0, 1.5])

@@ -89,6 +89,7 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "distance_distilled": RowConfig("Distance (distilled)", "policy", "distance_distilled"),
     "dijkstra_distilled": RowConfig("Dijkstra (distilled)", "policy", "dijkstra_distilled"),
     "dijkstra_cbf_distilled": RowConfig("Dijkstra + CBF (distilled)", "policy", "dijkstra_cbf_distilled"),
+    "inflation_distilled": RowConfig("Geometric inflation (0.4 m, distilled)", "policy", "inflation_distilled"),
     "full_distilled": RowConfig("Full (distilled) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf_distilled",
                                 shield=True),  # fmt: skip
     "oracle": RowConfig("Oracle (privileged map)", "oracle"),
@@ -125,7 +126,7 @@ class EvalConfig:
         default_factory=lambda: {
             k: f"checkpoints/{k}"
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
-                      "dijkstra_cbf_distilled")  # fmt: skip
+                      "dijkstra_cbf_distilled", "inflation_distilled")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

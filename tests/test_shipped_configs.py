@@ -1,0 +1,35 @@
+"""Every shipped YAML config loads against its schema (strict keys) and names only known rows/classes."""
+
+import glob
+import os
+
+import pytest
+
+from shield_nav import evaluation as E
+from shield_nav.training import load_train_config, rsl_rl_train_cfg
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(REPO, "configs", "train", "*.yaml"))))
+def test_train_configs_load(path):
+    cfg = load_train_config(path)
+    d = rsl_rl_train_cfg(cfg)
+    if cfg.runner.class_name == "DistillationRunner":
+        assert {"student", "teacher"} <= set(d) and "critic" not in d
+        assert cfg.env.local_map.enabled
+        assert cfg.runner.teacher_checkpoint or os.path.basename(path) == "distill.yaml"  # the shared partial
+    else:
+        assert {"actor", "critic"} <= set(d)
+    if os.path.basename(path).startswith("teacher_"):
+        assert not cfg.env.render_depth and d["actor"]["class_name"] == "MLPModel"
+        assert "cnn_channels" not in d["actor"]  # keys MLPModel does not take are dropped
+
+
+@pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(REPO, "configs", "eval", "*.yaml"))))
+def test_eval_configs_load_and_name_known_rows(path):
+    cfg = E.load_eval_config(path)
+    rows = E.resolve_rows(cfg)
+    for row in rows.values():
+        if row.controller == "policy":
+            assert row.policy in cfg.checkpoints

@@ -178,6 +178,10 @@ class RunnerConfig:
     dropped); its weights come from ``teacher_checkpoint``."""
     teacher_checkpoint: str = ""
     """Distillation only: the teacher's PPO checkpoint (``model_<it>.pt`` or ``checkpoints/<name>/model.pt``)."""
+    student_init: str = ""
+    """Distillation only, optional: a distillation checkpoint whose *student* weights (and observation normaliser)
+    start this run, e.g. the previous round's ``checkpoints/<f>_distilled/model.pt`` when re-distilling from a longer
+    trained teacher. The optimizer and the iteration count start fresh; empty = a randomly initialised student."""
     init_at_random_ep_len: bool = True
     """Start the first rollout at random episode times, to decorrelate the envs."""
     check_for_nan: bool = True
@@ -237,6 +241,7 @@ class TrainConfig:
         got = r.algorithm.class_name
         require(got == algo, f"{prefix}runner.algorithm.class_name",
                 f"must be {algo!r} with runner.class_name {r.class_name!r}, got {got!r}")  # fmt: skip
+        require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
         for key in ("student", "teacher") if distill else ("actor", "critic"):
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
         require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
@@ -276,7 +281,7 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
     and ``teacher``. Model and algorithm keys their classes do not take are dropped.
     """
     d = to_dict(cfg.runner)
-    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint"):
+    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init"):
         d.pop(key)
     teacher = d.pop("teacher")
     if cfg.runner.class_name == "DistillationRunner":
@@ -418,6 +423,8 @@ def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> No
                 f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
                 "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
             )
+    if distill and resume is None and cfg.runner.student_init and not os.path.isfile(cfg.runner.student_init):
+        raise ConfigError(f"config key 'runner.student_init': no such file {cfg.runner.student_init!r}")
 
 
 def train(
@@ -469,6 +476,9 @@ def train(
     if cfg.runner.class_name == "DistillationRunner" and resume is None:
         runner.load(cfg.runner.teacher_checkpoint, map_location=device)  # actor weights -> teacher only
         print(f"[train] teacher loaded from {cfg.runner.teacher_checkpoint}", flush=True)
+        if cfg.runner.student_init:
+            runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device)
+            print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
     if resume is not None:
         infos = runner.load(str(resume), map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
@@ -488,6 +498,10 @@ def train(
     log_fn = runner.logger.log
 
     def log_then_check(*args: Any, **kwargs: Any) -> None:
+        # The logger's ETA divides tot_time by the iterations since start_it; tot_time is restored on --resume and
+        # spans the whole run, so count from iteration 0 (else a resumed run prints an ETA of days).
+        if "start_it" in kwargs:
+            kwargs["start_it"] = 0
         log_fn(*args, **kwargs)
         if stop.signum is not None:
             raise _StopTraining

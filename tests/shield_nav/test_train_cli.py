@@ -141,6 +141,20 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     sess = ort.InferenceSession(onnx_path, providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()][1] == "depth"  # the deployable student reads depth, not the map
 
+    # Re-distillation warm start: runner.student_init loads that student (learning rate 0 keeps it as loaded).
+    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", *small, "--set", "name=warm",
+                     f"runner.teacher_checkpoint={teacher_ckpt}", "runner.algorithm.learning_rate=0.0",
+                     f"runner.student_init={os.path.join(student_dir, 'model_0.pt')}"])  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "student initialised from" in res.stdout
+    (warm_dir,) = [os.path.join(root, "shield_nav", d) for d in os.listdir(os.path.join(root, "shield_nav"))
+                   if d.endswith("_warm")]  # fmt: skip
+    warm = torch.load(os.path.join(warm_dir, "model_0.pt"), weights_only=False)["student_state_dict"]
+    assert warm.keys() == ckpt["student_state_dict"].keys()
+    for k, v in ckpt["student_state_dict"].items():
+        if "normalizer" not in k:  # the observation normaliser keeps updating its running statistics
+            torch.testing.assert_close(warm[k], v)
+
     # Packaging: the teacher without exports (not deployable), the student with an ONNX that matches its weights.
     from shield_nav.package import actor_from_checkpoint, package
 
@@ -172,4 +186,10 @@ def test_distillation_inputs_fail_fast(tmp_path):
     assert res.returncode == 2 and "runner.algorithm.class_name" in res.stderr
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.obs_groups.actor=[teacher]"], timeout=120)
     assert res.returncode == 2 and "env.local_map.enabled" in res.stderr
+    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", "--log-dir", root, "--set",
+                     "runner.teacher_checkpoint=checkpoints/teacher_dijkstra_cbf/model.pt",
+                     "runner.student_init=nowhere/student.pt"], timeout=120)  # fmt: skip
+    assert res.returncode == 2 and "runner.student_init" in res.stderr and "nowhere/student.pt" in res.stderr
+    res = run_train([*TINY, "--log-dir", root, "--set", "runner.student_init=checkpoints/dijkstra_cbf/model.pt"])
+    assert res.returncode == 2 and "runner.student_init" in res.stderr and "DistillationRunner" in res.stderr
     assert not os.path.exists(root)  # nothing was started

@@ -73,12 +73,17 @@ class RowConfig:
     label: str = ""
     """Name shown in the table."""
     controller: str = "policy"
-    """``policy`` (a checkpoint), or a baseline: ``oracle`` (privileged), ``reactive``, ``goal``."""
+    """``policy`` (an exported depth actor), ``teacher`` (a privileged MLP teacher's PPO checkpoint: it reads the
+    local ESDF map, so the row is an upper bound like the oracle), or a baseline: ``oracle`` (privileged),
+    ``reactive``, ``goal``."""
     policy: str = ""
-    """Checkpoint name (a key of ``checkpoints``) for ``controller: policy``."""
+    """Checkpoint name (a key of ``checkpoints``) for ``controller: policy`` or ``teacher``."""
     shield: bool = False
     """Filter the commands through the HOCBF shield."""
 
+
+POLICY_CONTROLLERS = ("policy", "teacher")
+"""Row controllers that run a checkpoint named by ``RowConfig.policy``."""
 
 BUILTIN_ROWS: dict[str, RowConfig] = {
     "distance": RowConfig("Distance", "policy", "distance"),
@@ -92,6 +97,10 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "inflation_distilled": RowConfig("Geometric inflation (0.4 m, distilled)", "policy", "inflation_distilled"),
     "full_distilled": RowConfig("Full (distilled) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf_distilled",
                                 shield=True),  # fmt: skip
+    "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
+    "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
+    "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
+    "teacher_inflation": RowConfig("Teacher, inflation (privileged map)", "teacher", "teacher_inflation"),
     "oracle": RowConfig("Oracle (privileged map)", "oracle"),
     "reactive": RowConfig("Reactive depth primitives", "reactive"),
     "goal_seeking": RowConfig("Goal-seeking (no shield)", "goal"),
@@ -126,7 +135,8 @@ class EvalConfig:
         default_factory=lambda: {
             k: f"checkpoints/{k}"
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
-                      "dijkstra_cbf_distilled", "inflation_distilled")  # fmt: skip
+                      "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
+                      "teacher_dijkstra_cbf", "teacher_inflation")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""
@@ -218,9 +228,9 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
         if name not in known:
             raise EvalError(f"unknown configuration {name!r}; known: {sorted(known)} (or define it under 'rows:')")
         row = known[name]
-        if row.controller == "policy" and not row.policy:
-            raise EvalError(f"configuration {name!r} is a policy row but names no checkpoint ('policy:')")
-        if row.controller != "policy":
+        if row.controller in POLICY_CONTROLLERS and not row.policy:
+            raise EvalError(f"configuration {name!r} is a {row.controller} row but names no checkpoint ('policy:')")
+        if row.controller not in POLICY_CONTROLLERS:
             make_baseline(row.controller, cfg.baselines)  # raises on an unknown controller name
         out[name] = row
     return out
@@ -438,6 +448,75 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
     return LoadedPolicy(info, mod)
 
 
+class LoadedTeacher:
+    """A privileged MLP teacher: ``step(teacher_obs (N, T)) -> actions (N, 4)``, deterministic (the mean action).
+
+    ``teacher_obs`` is the env's ``info["teacher"]`` (the clean state and the local ESDF map), so a teacher row is
+    privileged, an upper bound for the student distilled from it, never a deployable controller.
+    """
+
+    def __init__(self, info: PolicyInfo, model: Any, group: str) -> None:  # noqa: D107
+        self.info = info
+        self._model = model
+        self._group = group
+
+    def step(self, teacher_obs: np.ndarray) -> np.ndarray:
+        """Mean action for a batch of teacher observations."""
+        import torch
+        from tensordict import TensorDict
+
+        x = torch.from_numpy(np.ascontiguousarray(teacher_obs, dtype=np.float32))
+        with torch.no_grad():
+            act = self._model(TensorDict({self._group: x}, batch_size=[x.shape[0]]))
+        return act.numpy().astype(np.float64)
+
+
+def load_teacher(path: str | os.PathLike, name: str = "teacher") -> LoadedTeacher:
+    """Load a privileged teacher from its PPO checkpoint (``model.pt``, or the packaged folder holding it).
+
+    The actor is rebuilt with rsl-rl's own ``MLPModel`` from the resolved config stored in the checkpoint. Its
+    training env's ``local_map`` section comes along in ``train_env``, so evaluation samples the same map.
+
+    Raises:
+        EvalError: missing file, not a PPO checkpoint, or an actor that does not read the ``teacher`` group only.
+    """
+    import torch
+    from rsl_rl.models import MLPModel
+    from tensordict import TensorDict
+
+    from shield_nav.training import load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
+
+    path = os.fspath(path)
+    file = os.path.join(path, "model.pt") if os.path.isdir(path) else path
+    if not os.path.isfile(file):
+        raise EvalError(f"checkpoint {name!r}: no teacher checkpoint at {file!r} (model.pt of a teacher_* run)")
+    try:
+        ckpt = torch.load(file, map_location="cpu", weights_only=False)
+        tcfg = load_train_config(overrides=read_checkpoint_infos(file)["config"])
+    except Exception as err:
+        raise EvalError(f"checkpoint {name!r}: {file!r} is not a readable training checkpoint: {err}") from None
+    groups = tcfg.runner.obs_groups.get("actor", [])
+    if "actor_state_dict" not in ckpt or tcfg.runner.actor.class_name != "MLPModel" or groups != ["teacher"]:
+        raise EvalError(
+            f"checkpoint {name!r}: {file!r} is not a privileged teacher (a PPO checkpoint whose actor is an MLPModel "
+            f"over the 'teacher' group; got {tcfg.runner.actor.class_name} over {groups})"
+        )
+    dim = ckpt["actor_state_dict"]["mlp.0.weight"].shape[1]
+    kwargs = {k: v for k, v in rsl_rl_train_cfg(tcfg)["actor"].items() if k != "class_name"}
+    model = MLPModel(TensorDict({"teacher": torch.zeros(1, dim)}, batch_size=[1]), {"actor": ["teacher"]}, "actor",
+                     4, **kwargs)  # fmt: skip
+    model.load_state_dict(ckpt["actor_state_dict"])
+    model.eval()
+    env = to_dict(tcfg.env)
+    train_env = {k: env[k] for k in (*POLICY_ENV_SECTIONS, "local_map")}
+    cfg_path = os.path.join(os.path.dirname(file), "params", "config.yaml")
+    cfg_path = cfg_path if os.path.isfile(cfg_path) else None
+    speeds = tcfg.env.episode.speed_range or tcfg.env.episode.target_speeds
+    info = PolicyInfo(name, file, "teacher", _sha256(file), dim, (0, 0, 0), 0, 0, cfg_path,
+                      (min(speeds), max(speeds)), train_env)  # fmt: skip
+    return LoadedTeacher(info, model, "teacher")
+
+
 def check_layout(info: PolicyInfo, state_dim: int, depth_shape: tuple[int, int, int]) -> None:
     """Raise :class:`EvalError` unless the policy's observation layout matches the env's."""
     problems = []
@@ -622,6 +701,15 @@ def _policy(path: str) -> LoadedPolicy:
     return _POLICY_CACHE[path]
 
 
+_TEACHER_CACHE: dict[str, LoadedTeacher] = {}
+
+
+def _teacher(path: str) -> LoadedTeacher:
+    if path not in _TEACHER_CACHE:
+        _TEACHER_CACHE[path] = load_teacher(path)
+    return _TEACHER_CACHE[path]
+
+
 def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on_step: Any | None = None) -> list[dict]:
     """Fly one batch of pinned trials to the end; returns per-trial records.
 
@@ -631,7 +719,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     row = RowConfig(**spec.row)
     n = len(trials)
     env.sim_time = 0.0  # moving obstacles start from their t = 0 positions in every batch (determinism)
-    obs, _ = env.reset(
+    obs, priv = env.reset(
         seed=trials[0]["seed"] % (2**31),
         options={
             "scene_ids": np.zeros(n, dtype=np.int64),
@@ -642,10 +730,13 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         },
     )
     policy: LoadedPolicy | None = None
+    teacher: LoadedTeacher | None = None
     ctrl: Controller | None = None
     if row.controller == "policy":
         policy = _policy(spec.policy_path)  # type: ignore[arg-type]
         h = policy.initial_state(n)
+    elif row.controller == "teacher":
+        teacher = _teacher(spec.policy_path)  # type: ignore[arg-type]
     else:
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
@@ -667,8 +758,11 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         on_step(env, 0, np.zeros(n, dtype=bool))
     while (end_step < 0).any():
         live = end_step < 0
-        if policy is not None:
-            act, h = policy.step(obs["state"], obs["depth"], h)
+        if policy is not None or teacher is not None:
+            if policy is not None:
+                act, h = policy.step(obs["state"], obs["depth"], h)
+            else:
+                act = teacher.step(priv["teacher"])  # type: ignore[union-attr]
             cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None else None
         else:
             act, cmd = zeros, ctrl.commands(env)  # type: ignore[union-attr]
@@ -689,6 +783,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             sh["solve_us_max"][li] = np.maximum(sh["solve_us_max"][li], out.solve_us)
             sh["total_us_sum"][li] += out.total_us
         obs, _, term, trunc, info = env.step(act, commands=cmd)
+        priv = info
         t += 1
         if on_step is not None:
             on_step(env, t, step_active)
@@ -812,12 +907,13 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
     missing: dict[str, str] = {}
     notes: list[str] = []
     flags: dict[tuple[str, float], str] = {}
-    needed = {r.policy for r in rows.values() if r.controller == "policy"}
+    needed = {r.policy: r.controller for r in rows.values() if r.controller in POLICY_CONTROLLERS}
     for pname in sorted(needed):
         if pname not in cfg.checkpoints:
             raise EvalError(f"no checkpoint path for policy {pname!r}; give --checkpoint {pname}=PATH")
         try:
-            pol = load_policy(cfg.checkpoints[pname], pname)
+            loader = load_teacher if needed[pname] == "teacher" else load_policy
+            pol = loader(cfg.checkpoints[pname], pname)
         except EvalError as err:
             if cfg.missing_checkpoints == "skip" and pname not in explicit_checkpoints and \
                     not os.path.exists(cfg.checkpoints[pname]):  # fmt: skip
@@ -826,9 +922,17 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
                         missing[rname] = f"no checkpoint at {cfg.checkpoints[pname]}"
                 continue
             raise err
-        cam = nav_config(cfg, cfg.scenes.family, cfg.scene_indices[0], cfg.speeds[0], 1, pol.info.train_env).camera
-        check_layout(pol.info, STATE_DIM, (1, cam.height, cam.width))
-        if (cam.height, cam.width) != depth_shape[1:]:
+        nav = nav_config(cfg, cfg.scenes.family, cfg.scene_indices[0], cfg.speeds[0], 1, pol.info.train_env)
+        cam = nav.camera
+        if pol.info.kind == "teacher":
+            lm = nav.local_map
+            want = STATE_DIM + len(lm.xs) * len(lm.ys) * len(lm.zs)
+            if pol.info.obs_dim != want:
+                raise EvalError(f"checkpoint {pname!r} ({pol.info.path}) reads {pol.info.obs_dim} teacher values; "
+                                f"its local map config gives {want}")  # fmt: skip
+        else:
+            check_layout(pol.info, STATE_DIM, (1, cam.height, cam.width))
+        if pol.info.kind != "teacher" and (cam.height, cam.width) != depth_shape[1:]:
             notes.append(f"policy {pname!r} flies with its training camera {cam.width}x{cam.height}")
         policies[pname] = pol.info
         if pol.info.train_speeds is None:
@@ -854,12 +958,14 @@ def plan_units(prep: Prepared) -> list[UnitSpec]:
     for rname, row in prep.rows.items():
         if rname in prep.missing:
             continue
-        pol = prep.policies[row.policy] if row.controller == "policy" else None
+        pol = prep.policies[row.policy] if row.controller in POLICY_CONTROLLERS else None
+        env = pol and pol.train_env
+        if row.controller == "teacher":  # the map replaces the camera; render only if the shield needs depth
+            env = {**env, "local_map": {**env["local_map"], "enabled": True}, "render_depth": bool(row.shield)}
         for v in cfg.speeds:
             for k in cfg.scene_indices:
                 units.append(UnitSpec(unit_key(rname, cfg.scenes.family, k, v), rname, dataclasses.asdict(row),
-                                      cfg.scenes.family, k, float(v), d, pol and pol.path,
-                                      pol and pol.train_env))  # fmt: skip
+                                      cfg.scenes.family, k, float(v), d, pol and pol.path, env))  # fmt: skip
     return units
 
 
@@ -1044,6 +1150,8 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
     ]
     if any(r.controller == "oracle" for r in prep.rows.values()):
         lines.append("The oracle reads the privileged map (geodesic field and ESDF): an upper bound, not a competitor.")
+    if any(r.controller == "teacher" for r in prep.rows.values()):
+        lines.append("Teacher rows read the privileged local ESDF map (no depth): a bound for their students.")
     for name, info in prep.policies.items():
         lines.append(f"Checkpoint `{name}`: {info.path} (sha256 {info.sha256[:12]}, {info.kind}).")
     if prep.missing:

@@ -197,6 +197,39 @@ def test_layout_mismatch_is_a_clear_error(tmp_path):
         E.prepare(cfg)
 
 
+def test_teacher_row_runs_the_privileged_mlp(tmp_path):
+    import torch
+
+    path = os.path.join(ROOT, "checkpoints", "teacher_dijkstra_cbf")
+    teacher = E.load_teacher(path, "teacher_dijkstra_cbf")
+    assert teacher.info.kind == "teacher" and teacher.info.obs_dim == 21 + 9 * 9 * 3
+    assert teacher.info.train_env["local_map"]["enabled"] is True
+    # Independent forward from the raw weights: normalise (eps 0.01, rsl-rl's), three ELU layers, a linear head.
+    sd = {k: v.double().numpy() for k, v in torch.load(os.path.join(path, "model.pt"), weights_only=False)[
+        "actor_state_dict"].items() if v.dim() > 0}  # fmt: skip
+    x = np.random.default_rng(0).normal(size=(3, 264))
+    z = (x - sd["obs_normalizer._mean"]) / (sd["obs_normalizer._std"] + 0.01)
+    for i in (0, 2, 4):
+        z = z @ sd[f"mlp.{i}.weight"].T + sd[f"mlp.{i}.bias"]
+        z = np.where(z > 0, z, np.expm1(np.minimum(z, 0.0)))
+    z = z @ sd["mlp.6.weight"].T + sd["mlp.6.bias"]
+    np.testing.assert_allclose(teacher.step(x), z, atol=1e-4)
+    # A student is not a teacher.
+    with pytest.raises(E.EvalError, match="not a privileged teacher"):
+        E.load_teacher(os.path.join(ROOT, "checkpoints", "dijkstra_cbf_distilled"), "s")
+    with pytest.raises(E.EvalError, match="no teacher checkpoint"):
+        E.load_teacher(str(tmp_path), "nothing")
+    # Through the harness: the unit enables the map and skips rendering; the header says the row is privileged.
+    cfg = tiny_cfg("configurations=[teacher_dijkstra_cbf]", f"checkpoints.teacher_dijkstra_cbf={path}",
+                   "trials_per_scene=1", "speeds=[3.0]", "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
+    (unit,) = E.plan_units(E.prepare(cfg))
+    assert unit.policy_env["local_map"]["enabled"] is True and unit.policy_env["render_depth"] is False
+    summary = E.evaluate(cfg, str(tmp_path / "out"), progress=False)
+    assert "privileged local ESDF map" in summary["markdown"]
+    (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
+    assert trial["outcome"] in ("success", "collision", "timeout", "out_of_bounds") and trial["steps"] > 0
+
+
 # ----------------------------------------------------------------------------------------------- real tiny runs
 def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     out1, out2 = str(tmp_path / "a"), str(tmp_path / "b")

@@ -549,7 +549,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``train.py`` argument parser."""
     p = argparse.ArgumentParser(prog="train.py", description="Train the depth CNN+GRU policy with rsl-rl PPO.")
     p.add_argument("--config", help="configs/train/<name>.yaml (required unless --resume)")
-    p.add_argument("--set", nargs="+", default=[], metavar="A.B=V", help="dotted overrides, e.g. env.num_envs=32")
+    p.add_argument("--set", nargs="+", action="extend", default=[], metavar="A.B=V",
+                   help="dotted overrides, e.g. env.num_envs=32 (repeatable; all apply, in order)")  # fmt: skip
     p.add_argument("--num-envs", type=int, help="shorthand for --set env.num_envs=N")
     p.add_argument("--max-iterations", type=int, help="total iterations of the run")
     p.add_argument("--seed", type=int, help="sets seed and env.seed")

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--num-envs", type=int, default=64)
     p.add_argument("--iterations", type=int, default=3, help="measured iterations")
     p.add_argument("--warmup", type=int, default=1, help="iterations run first and not measured")
-    p.add_argument("--set", nargs="*", default=[], metavar="A.B=V", help="extra config overrides")
+    p.add_argument("--set", nargs="*", action="extend", default=[], metavar="A.B=V", help="extra config overrides")
     args = p.parse_args(argv)
 
     cfg = load_train_config(args.config, overrides=[f"env.num_envs={args.num_envs}", *args.set])

@@ -75,6 +75,15 @@ def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_pat
     assert scalar_steps(run, "Loss/value") == [0, 1, 2]
 
 
+def test_repeated_set_flags_all_apply():
+    from shield_nav.training import build_parser, config_from_args
+
+    quick = os.path.join(REPO, "configs", "train", "quick.yaml")
+    args = build_parser().parse_args(["--config", quick, "--set", "seed=3", "env.num_envs=8", "--set", "name=other"])
+    cfg = config_from_args(args)
+    assert (cfg.seed, cfg.env.num_envs, cfg.name) == (3, 8, "other")  # the first --set is not dropped by the second
+
+
 def test_bad_config_key_fails_fast_with_the_key_path(tmp_path):
     root = str(tmp_path / "logs")
     res = run_train([*TINY, "--set", "env.reward.navigaton=geodesic", "--log-dir", root], timeout=120)

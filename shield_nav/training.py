@@ -181,7 +181,8 @@ class RunnerConfig:
     student_init: str = ""
     """Distillation only, optional: a distillation checkpoint whose *student* weights (and observation normaliser)
     start this run, e.g. the previous round's ``checkpoints/<f>_distilled/model.pt`` when re-distilling from a longer
-    trained teacher. The optimizer and the iteration count start fresh; empty = a randomly initialised student."""
+    trained teacher, and its stored curriculum levels when the env count matches. The optimizer and the iteration
+    count start fresh; empty = a randomly initialised student."""
     init_at_random_ep_len: bool = True
     """Start the first rollout at random episode times, to decorrelate the envs."""
     check_for_nan: bool = True
@@ -427,6 +428,13 @@ def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> No
         raise ConfigError(f"config key 'runner.student_init': no such file {cfg.runner.student_init!r}")
 
 
+def _restore_levels(env: Any, levels: list[int] | None) -> None:
+    """Put the envs back on the curriculum levels a checkpoint stored (same env count only)."""
+    if levels is not None and hasattr(env, "set_curriculum_levels") and len(levels) == env.num_envs:
+        env.set_curriculum_levels(levels)
+        print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
+
+
 def train(
     cfg: TrainConfig,
     resume: str | os.PathLike | None = None,
@@ -477,18 +485,16 @@ def train(
         runner.load(cfg.runner.teacher_checkpoint, map_location=device)  # actor weights -> teacher only
         print(f"[train] teacher loaded from {cfg.runner.teacher_checkpoint}", flush=True)
         if cfg.runner.student_init:
-            runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device)
+            infos = runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device) or {}
             print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
+            _restore_levels(env, infos.get("curriculum_levels"))
     if resume is not None:
         infos = runner.load(str(resume), map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
         runner.current_learning_iteration = start_it
         runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))
         runner.logger.tot_time = float(infos.get("tot_time", 0.0))
-        levels = infos.get("curriculum_levels")
-        if levels is not None and hasattr(env, "set_curriculum_levels") and len(levels) == env.num_envs:
-            env.set_curriculum_levels(levels)
-            print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
+        _restore_levels(env, infos.get("curriculum_levels"))
         print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
     remaining = cfg.max_iterations - start_it
 

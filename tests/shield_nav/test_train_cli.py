@@ -155,7 +155,7 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
                      f"runner.teacher_checkpoint={teacher_ckpt}", "runner.algorithm.learning_rate=0.0",
                      f"runner.student_init={os.path.join(student_dir, 'model_0.pt')}"])  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
-    assert "student initialised from" in res.stdout
+    assert "student initialised from" in res.stdout and "curriculum levels restored" in res.stdout
     (warm_dir,) = [os.path.join(root, "shield_nav", d) for d in os.listdir(os.path.join(root, "shield_nav"))
                    if d.endswith("_warm")]  # fmt: skip
     warm = torch.load(os.path.join(warm_dir, "model_0.pt"), weights_only=False)["student_state_dict"]

@@ -74,7 +74,7 @@ class RowConfig:
     """Name shown in the table."""
     controller: str = "policy"
     """``policy`` (an exported depth actor), ``teacher`` (a privileged MLP teacher's PPO checkpoint: it reads the
-    local ESDF map, so the row is an upper bound like the oracle), or a baseline: ``oracle`` (privileged),
+    local ESDF map, so the row is privileged like the oracle), or a baseline: ``oracle`` (privileged),
     ``reactive``, ``goal``."""
     policy: str = ""
     """Checkpoint name (a key of ``checkpoints``) for ``controller: policy`` or ``teacher``."""
@@ -452,7 +452,7 @@ class LoadedTeacher:
     """A privileged MLP teacher: ``step(teacher_obs (N, T)) -> actions (N, 4)``, deterministic (the mean action).
 
     ``teacher_obs`` is the env's ``info["teacher"]`` (the clean state and the local ESDF map), so a teacher row is
-    privileged, an upper bound for the student distilled from it, never a deployable controller.
+    privileged (the policy its student imitates), never a deployable controller.
     """
 
     def __init__(self, info: PolicyInfo, model: Any, group: str) -> None:  # noqa: D107
@@ -1151,7 +1151,7 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
     if any(r.controller == "oracle" for r in prep.rows.values()):
         lines.append("The oracle reads the privileged map (geodesic field and ESDF): an upper bound, not a competitor.")
     if any(r.controller == "teacher" for r in prep.rows.values()):
-        lines.append("Teacher rows read the privileged local ESDF map (no depth): a bound for their students.")
+        lines.append("Teacher rows read the privileged local ESDF map (no depth): the policy each student imitates.")
     for name, info in prep.policies.items():
         lines.append(f"Checkpoint `{name}`: {info.path} (sha256 {info.sha256[:12]}, {info.kind}).")
     if prep.missing:

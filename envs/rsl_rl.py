@@ -11,6 +11,8 @@ state     (N, 21)               noisy proprioception and goal (policy), see ``ST
 critic    (N, C)                noise-free privileged vector (critic only)
 teacher   (N, 21 + M)           clean state + privileged local ESDF map (only with ``env.local_map.enabled``;
                                 a privileged teacher's input, see docs/training.md "Teacher-student")
+expert    (N, 4)                a scripted expert's normalised action for the current state (only when the
+                                adapter is built with ``expert=``; the label of oracle-DAgger distillation)
 ========  ====================  ==========================================================
 
 ``extras["time_outs"]`` (N,) marks truncations for bootstrapping; ``extras["log"]`` holds per-step reward-term means
@@ -19,6 +21,8 @@ which rsl-rl's logger averages per iteration and writes to tensorboard.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -34,10 +38,18 @@ class RslRlVecEnv(VecEnv):
     Args:
         env: The batched navigation env.
         device: Torch device for the returned tensors.
+        expert: Optional stateless expert ``expert(env) -> (N, 4)`` normalised actions, evaluated on every new
+            observation (after resets too) and returned as the ``expert`` group.
     """
 
-    def __init__(self, env: NavigationEnv, device: str | torch.device = "cpu") -> None:  # noqa: D107
+    def __init__(
+        self,
+        env: NavigationEnv,
+        device: str | torch.device = "cpu",
+        expert: Callable[[NavigationEnv], np.ndarray] | None = None,
+    ) -> None:  # noqa: D107
         self.env = env
+        self.expert = expert
         self.cfg = env.cfg
         self.device = torch.device(device)
         self.num_envs = env.num_envs
@@ -70,6 +82,8 @@ class RslRlVecEnv(VecEnv):
         for k in ("critic", "teacher"):
             if k in info:
                 data[k] = torch.from_numpy(np.ascontiguousarray(info[k]))
+        if self.expert is not None:
+            data["expert"] = torch.from_numpy(np.asarray(self.expert(self.env), dtype=np.float32))
         return TensorDict(data, batch_size=[self.num_envs], device=self.device)
 
     @property

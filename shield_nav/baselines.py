@@ -66,6 +66,11 @@ class OracleConfig:
     goal_switch: float = 3.0
     """Below this geodesic distance to the goal region, fly straight at the goal point instead [m]. (The field
     flows to the whole 1 x 32 m goal box; success needs the goal point within 5 m.)"""
+    episode_goal: bool = False
+    """Descend the geodesic field of the episode's own goal anchor (``env.episode.goal_anchors`` > 0 with the
+    geodesic reward) instead of the whole goal region's field; falls back to the region field when the env has no
+    anchor fields. The expert of the oracle-DAgger student uses it (it leads to the goal point itself); the
+    evaluation rows keep the region field their published numbers were measured with."""
 
 
 @dataclass
@@ -184,6 +189,13 @@ class OracleController(Controller):
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg
 
+    def _geodesic(self, env: Any, ids: np.ndarray, pts: np.ndarray, per_env: int) -> np.ndarray:
+        """Phi at ``per_env`` consecutive points per env: the episode goal's anchor field or the region field."""
+        if self.cfg.oracle.episode_goal and getattr(env, "anchor_fields", None) is not None:
+            anchors = np.repeat(env.anchor_buf, per_env)
+            return env.anchor_fields.geodesic(np.repeat(ids, per_env), anchors, pts)
+        return env.field_stack.geodesic(np.repeat(ids, per_env), pts)
+
     def commands(self, env: Any) -> np.ndarray:  # noqa: D102
         oc = self.cfg.oracle
         pos, vel = env.local_pos, env.vehicles.vel_w
@@ -193,14 +205,14 @@ class OracleController(Controller):
         h = oc.fd_step
         offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
         pts = (q[:, None, :] + offsets[None]).reshape(-1, 3)
-        phi = env.field_stack.geodesic(np.repeat(ids, 6), pts).reshape(n, 6)
+        phi = self._geodesic(env, ids, pts, 6).reshape(n, 6)
         grad_phi = (phi[:, :3] - phi[:, 3:]) / (2 * h)
         # Points just past the goal region (x beyond the scene) read Phi(clamped) + outside: still descend to goal.
         d_now, g_now, _ = env.field_stack.query(ids, pos, geodesic=False)
         d_ahead = env.field_stack.esdf(ids, q)
         scale = np.clip(d_ahead / oc.slow_dist, oc.min_speed_fraction, 1.0)
         direction = -_unit(grad_phi)
-        near = env.field_stack.geodesic(ids, pos) < oc.goal_switch
+        near = self._geodesic(env, ids, pos, 1) < oc.goal_switch
         direction[near] = _unit(env.goal_buf[near] - pos[near])
         v_des = direction * (scale * env.target_speed_buf)[:, None]
         deficit = np.maximum(oc.repulse_dist - d_now, 0.0)
@@ -297,6 +309,31 @@ class ReactivePlanner(Controller):
         self._step += 1
         a = self.cfg.tracking.k_v * (self._v_des - env.vehicles.vel_w)
         return accel_to_command(a, self._psi, self.cfg.tracking, env.cfg.vehicle.gravity)
+
+
+class OracleExpert:
+    """The oracle as a DAgger expert: its command for every env's current state, as a normalised action.
+
+    ``expert(env)`` returns (N, 4) actions in [-1, 1] (``env.command_to_action`` of the oracle's command, clipped
+    where the command exceeds the action range, e.g. a yaw lead beyond ``action.yaw_range_deg``). The oracle is
+    stateless, so the label depends only on the state the *student* reached: DAgger labels (Ross et al. 2011) with
+    a privileged expert, as in Loquercio et al. 2021 (Science Robotics, "Learning high-speed flight in the wild").
+    """
+
+    def __init__(self, cfg: BaselineConfig | None = None) -> None:  # noqa: D107
+        self.controller = OracleController(cfg or BaselineConfig(oracle=OracleConfig(episode_goal=True)))
+
+    def __call__(self, env: Any) -> np.ndarray:
+        """Expert actions (N, 4) for the env's current state."""
+        act = np.clip(env.command_to_action(self.controller.commands(env)), -1.0, 1.0)
+        if not np.isfinite(act).all():
+            bad = np.flatnonzero(~np.isfinite(act).all(axis=1)).tolist()
+            raise FloatingPointError(f"oracle expert produced non-finite actions for env(s) {bad}")
+        return act
+
+
+EXPERTS = {"oracle": OracleExpert}
+"""Scripted experts a distillation run can imitate (``runner.expert.kind``)."""
 
 
 BASELINES = {"oracle": OracleController, "reactive": ReactivePlanner, "goal": GoalSeeker}

@@ -97,6 +97,9 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "inflation_distilled": RowConfig("Geometric inflation (0.4 m, distilled)", "policy", "inflation_distilled"),
     "full_distilled": RowConfig("Full (distilled) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf_distilled",
                                 shield=True),  # fmt: skip
+    "oracle_distilled": RowConfig("Oracle-DAgger student (depth)", "policy", "oracle_distilled"),
+    "oracle_distilled_shield": RowConfig("Oracle-DAgger student + shield", "policy", "oracle_distilled",
+                                         shield=True),  # fmt: skip
     "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
     "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
@@ -136,7 +139,7 @@ class EvalConfig:
             k: f"checkpoints/{k}"
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
                       "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
-                      "teacher_dijkstra_cbf", "teacher_inflation")  # fmt: skip
+                      "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

@@ -32,7 +32,7 @@ from rsl_rl.models import MLPModel
 from rsl_rl.modules import RNN, HiddenState
 from tensordict import TensorDict
 
-__all__ = ["DepthEncoder", "DepthGRUModel", "ExportedDepthGRU", "export_policy"]
+__all__ = ["DepthEncoder", "DepthGRUModel", "ExpertTeacher", "ExportedDepthGRU", "export_policy"]
 
 
 class DepthEncoder(nn.Module):
@@ -249,6 +249,51 @@ class DepthGRUModel(MLPModel):
     def _get_latent_dim(self) -> int:
         """The MLP head reads the GRU output (Hd values)."""
         return self.latent_dim
+
+
+class ExpertTeacher(nn.Module):
+    """A parameter-free "teacher" for rsl-rl's ``Distillation`` that returns a scripted expert's action.
+
+    The env adapter computes the expert's normalised action for every visited state as the ``expert`` observation
+    group (``envs.rsl_rl.RslRlVecEnv(expert=...)``); this model hands that group to the algorithm as the label, so
+    the stock ``DistillationRunner`` runs DAgger against a scripted privileged expert (the oracle) instead of a
+    trained MLP teacher. Use as ``teacher.class_name: "shield_nav.models:ExpertTeacher"`` with
+    ``obs_groups.teacher: [expert]``. It has no weights and no hidden state.
+    """
+
+    is_recurrent = False
+
+    def __init__(
+        self, obs: TensorDict, obs_groups: dict[str, list[str]], obs_set: str, output_dim: int, **kwargs: object
+    ) -> None:  # noqa: D107
+        super().__init__()
+        groups = obs_groups[obs_set]
+        if len(groups) != 1:
+            raise ValueError(f"ExpertTeacher reads exactly one observation group in '{obs_set}', got {groups}")
+        self.group = groups[0]
+        shape = tuple(obs[self.group].shape)
+        if shape[1:] != (output_dim,):
+            raise ValueError(f"ExpertTeacher: group '{self.group}' has shape {shape}; expected (N, {output_dim})")
+
+    def forward(
+        self,
+        obs: TensorDict,
+        masks: torch.Tensor | None = None,
+        hidden_state: HiddenState = None,
+        stochastic_output: bool = False,
+    ) -> torch.Tensor:
+        """The expert's action (N, A), as given."""
+        return obs[self.group].float()
+
+    def reset(self, dones: torch.Tensor | None = None, hidden_state: HiddenState = None) -> None:
+        """Nothing to reset (the expert is stateless)."""
+
+    def get_hidden_state(self) -> HiddenState:
+        """None (no hidden state)."""
+        return None
+
+    def detach_hidden_state(self, dones: torch.Tensor | None = None) -> None:
+        """Nothing to detach."""
 
 
 class ExportedDepthGRU(nn.Module):

@@ -40,6 +40,7 @@ from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, load_config, require, to_dict, to_yaml
 from envs.navigation import NavConfig
+from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
 
 CHECKPOINT_FORMAT_VERSION = 1
 """Version of the ``infos`` layout inside ``model_<it>.pt``; bump it and add a migration when it changes."""
@@ -152,6 +153,23 @@ class AlgorithmConfig:
     """Distillation only: ``mse`` or ``huber`` between the student's mean action and the teacher's."""
 
 
+def _default_expert_params() -> BaselineConfig:
+    return BaselineConfig(oracle=OracleConfig(episode_goal=True))
+
+
+@dataclass
+class ExpertConfig:
+    """Distillation from a scripted privileged expert instead of a trained teacher (oracle DAgger)."""
+
+    kind: str = ""
+    """``oracle``: the geodesic-descent oracle of :mod:`shield_nav.baselines` labels every state the student visits
+    (with ``teacher.class_name: "shield_nav.models:ExpertTeacher"`` and ``obs_groups.teacher: [expert]``); no
+    ``teacher_checkpoint`` is needed. Empty: the trained teacher of ``teacher_checkpoint``."""
+    params: BaselineConfig = field(default_factory=_default_expert_params)
+    """The expert's parameters (:class:`shield_nav.baselines.BaselineConfig`; ``oracle.episode_goal`` defaults to
+    true here: descend the field of the episode's goal point)."""
+
+
 @dataclass
 class RunnerConfig:
     """rsl-rl runner train_cfg (everything but the env)."""
@@ -183,6 +201,8 @@ class RunnerConfig:
     start this run, e.g. the previous round's ``checkpoints/<f>_distilled/model.pt`` when re-distilling from a longer
     trained teacher, and its stored curriculum levels when the env count matches. The optimizer and the iteration
     count start fresh; empty = a randomly initialised student."""
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    """Distillation only, optional: a scripted expert as the teacher (see :class:`ExpertConfig`)."""
     init_at_random_ep_len: bool = True
     """Start the first rollout at random episode times, to decorrelate the envs."""
     check_for_nan: bool = True
@@ -247,6 +267,17 @@ class TrainConfig:
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
         require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
         require(r.algorithm.gradient_length >= 1, f"{prefix}runner.algorithm.gradient_length", "must be >= 1")
+        uses_expert_obs = any("expert" in groups for groups in r.obs_groups.values())
+        require(not uses_expert_obs or r.expert.kind, f"{prefix}runner.expert.kind",
+                "must be set when an obs group reads the 'expert' observation")  # fmt: skip
+        if r.expert.kind:
+            require(r.expert.kind in EXPERTS, f"{prefix}runner.expert.kind",
+                    f"unknown expert {r.expert.kind!r}; known: {sorted(EXPERTS)}")  # fmt: skip
+            require(distill, f"{prefix}runner.expert.kind", "only with runner.class_name DistillationRunner")
+            require(r.obs_groups.get("teacher") == ["expert"], f"{prefix}runner.obs_groups.teacher",
+                    f"must be [expert] with runner.expert.kind {r.expert.kind!r}")  # fmt: skip
+            require(r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
+                    "must be 'shield_nav.models:ExpertTeacher' with a scripted expert")  # fmt: skip
         uses_teacher_obs = any("teacher" in groups for groups in r.obs_groups.values())
         require(not uses_teacher_obs or self.env.local_map.enabled, f"{prefix}env.local_map.enabled",
                 "must be true when an obs group reads the 'teacher' observation")  # fmt: skip
@@ -282,7 +313,7 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
     and ``teacher``. Model and algorithm keys their classes do not take are dropped.
     """
     d = to_dict(cfg.runner)
-    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init"):
+    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init", "expert"):
         d.pop(key)
     teacher = d.pop("teacher")
     if cfg.runner.class_name == "DistillationRunner":
@@ -396,7 +427,10 @@ def make_env(cfg: TrainConfig) -> VecEnv:
     from envs.navigation import NavigationEnv
     from envs.rsl_rl import RslRlVecEnv
 
-    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device)
+    expert = None
+    if cfg.runner.expert.kind:
+        expert = EXPERTS[cfg.runner.expert.kind](cfg.runner.expert.params)
+    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert)
 
 
 def _randomize_episode_lengths(env: VecEnv) -> None:
@@ -419,7 +453,7 @@ def _new_run_dir(cfg: TrainConfig) -> str:
 def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> None:
     """Fail before any work if a file the run needs is missing (the teacher of a new distillation run)."""
     distill = cfg.runner.class_name == "DistillationRunner"
-    if distill and resume is None and not os.path.isfile(cfg.runner.teacher_checkpoint):
+    if distill and resume is None and not cfg.runner.expert.kind and not os.path.isfile(cfg.runner.teacher_checkpoint):
         raise ConfigError(
                 f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
                 "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
@@ -481,13 +515,16 @@ def train(
     runner.add_git_repo_to_log(REPO_ROOT)
 
     start_it = 0
-    if cfg.runner.class_name == "DistillationRunner" and resume is None:
+    if cfg.runner.class_name == "DistillationRunner" and cfg.runner.expert.kind:
+        runner.alg.teacher_loaded = True  # the scripted expert has no weights to load
+        print(f"[train] teacher: the scripted '{cfg.runner.expert.kind}' expert (obs group 'expert')", flush=True)
+    if cfg.runner.class_name == "DistillationRunner" and resume is None and not cfg.runner.expert.kind:
         runner.load(cfg.runner.teacher_checkpoint, map_location=device)  # actor weights -> teacher only
         print(f"[train] teacher loaded from {cfg.runner.teacher_checkpoint}", flush=True)
-        if cfg.runner.student_init:
-            infos = runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device) or {}
-            print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
-            _restore_levels(env, infos.get("curriculum_levels"))
+    if cfg.runner.class_name == "DistillationRunner" and resume is None and cfg.runner.student_init:
+        infos = runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device) or {}
+        print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
+        _restore_levels(env, infos.get("curriculum_levels"))
     if resume is not None:
         infos = runner.load(str(resume), map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration

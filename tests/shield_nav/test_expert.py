@@ -1,0 +1,126 @@
+"""Oracle DAgger: the scripted expert's labels, the ``expert`` observation group, the ``ExpertTeacher`` model and the
+config checks, against independent computations on the real task (2 training scenes)."""
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from envs.config import ConfigError
+from envs.navigation import NavigationEnv
+from envs.rsl_rl import RslRlVecEnv
+from shield_nav.baselines import BaselineConfig, OracleConfig, OracleController, OracleExpert
+from shield_nav.models import ExpertTeacher
+from shield_nav.training import load_train_config, make_env, make_runner
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+SMALL = {"scenes.indices": [0, 1], "episode.initial_speed_fraction": [0.3, 0.5]}
+
+
+def test_expert_action_maps_back_to_the_oracle_command():
+    """The label is the oracle's command in action space: action_to_command(label) == the command (unclipped)."""
+    env = NavigationEnv(num_envs=16, **SMALL)
+    env.reset(seed=4)
+    cfg = BaselineConfig(oracle=OracleConfig(episode_goal=True))
+    expert, oracle = OracleExpert(cfg), OracleController(cfg)
+    for _ in range(30):  # fly the expert a little, so the states are not all at the start
+        env.step(expert(env))
+    cmd = oracle.commands(env)
+    act = expert(env)
+    assert act.shape == (16, 4) and np.all(np.abs(act) <= 1.0)
+    inside = np.all(np.abs(act) < 0.999, axis=1)
+    assert inside.sum() >= 8  # most commands lie inside the action range
+    back = env.action_to_command(act)
+    np.testing.assert_allclose(back[inside, :3], cmd[inside, :3], atol=1e-9)
+    yaw_err = (back[inside, 3] - cmd[inside, 3] + math.pi) % (2 * math.pi) - math.pi
+    np.testing.assert_allclose(yaw_err, 0.0, atol=1e-9)
+
+
+def test_episode_goal_field_is_the_anchor_field():
+    """With ``episode_goal`` the oracle descends the episode's anchor field, else the goal region's field."""
+    env = NavigationEnv(num_envs=8, **SMALL)
+    env.reset(seed=2)
+    pts = env.local_pos
+    ep = OracleController(BaselineConfig(oracle=OracleConfig(episode_goal=True)))
+    reg = OracleController(BaselineConfig())
+    want_ep = env.anchor_fields.geodesic(env.scene_id_buf, env.anchor_buf, pts)
+    want_reg = env.field_stack.geodesic(env.scene_id_buf, pts)
+    np.testing.assert_allclose(ep._geodesic(env, env.scene_id_buf, pts, 1), want_ep)
+    np.testing.assert_allclose(reg._geodesic(env, env.scene_id_buf, pts, 1), want_reg)
+    assert not np.allclose(want_ep, want_reg)  # a goal point is farther than the nearest point of the goal box
+
+
+def test_expert_group_follows_resets_and_steps():
+    expert = OracleExpert()
+    vec = RslRlVecEnv(NavigationEnv(num_envs=4, **SMALL), expert=expert)
+    np.testing.assert_allclose(vec.get_observations()["expert"].numpy(), expert(vec.env), atol=1e-6)
+    for _ in range(5):
+        obs, _, _, _ = vec.step(torch.zeros(4, 4))
+        assert obs["expert"].dtype == torch.float32
+        np.testing.assert_allclose(obs["expert"].numpy(), expert(vec.env), atol=1e-6)
+
+
+def test_expert_teacher_passes_the_group_through_and_checks_shapes():
+    obs = TensorDict({"expert": torch.randn(3, 4), "state": torch.randn(3, 21)}, batch_size=[3])
+    model = ExpertTeacher(obs, {"teacher": ["expert"]}, "teacher", 4)
+    assert list(model.parameters()) == [] and model.get_hidden_state() is None
+    torch.testing.assert_close(model(obs), obs["expert"])
+    with pytest.raises(ValueError, match="exactly one observation group"):
+        ExpertTeacher(obs, {"teacher": ["expert", "state"]}, "teacher", 4)
+    with pytest.raises(ValueError, match="group 'state' has shape"):
+        ExpertTeacher(obs, {"teacher": ["state"]}, "teacher", 4)
+
+
+def test_distillation_runner_labels_with_the_oracle():
+    """rsl-rl's Distillation stores the oracle's action of each visited state as the privileged action."""
+    cfg = load_train_config(
+        os.path.join(REPO, "configs", "train", "distill_oracle.yaml"),
+        overrides=["env.num_envs=4", "env.scenes.indices=[0,1]", "runner.num_steps_per_env=4",
+                   "runner.algorithm.num_mini_batches=2"],  # fmt: skip
+    )
+    env = make_env(cfg)
+    runner = make_runner(env, cfg, log_dir=None, device="cpu")
+    reference = OracleExpert(cfg.runner.expert.params)
+    obs = env.get_observations()
+    for _ in range(3):
+        want = reference(env.env)
+        runner.alg.act(obs)
+        np.testing.assert_allclose(runner.alg.transition.privileged_actions.numpy(), want, atol=1e-6)
+        obs, rew, dones, extras = env.step(runner.alg.transition.actions)
+        runner.alg.process_env_step(obs, rew, dones, extras)
+
+
+def test_expert_config_errors_name_the_key():
+    path = os.path.join(REPO, "configs", "train", "distill_oracle.yaml")
+    with pytest.raises(ConfigError, match="runner.expert.kind"):
+        load_train_config(path, overrides=["runner.expert.kind=mpc"])
+    with pytest.raises(ConfigError, match="runner.expert.kind"):
+        load_train_config(path, overrides=["runner.expert.kind="])  # the 'expert' group needs an expert
+    with pytest.raises(ConfigError, match="runner.teacher.class_name"):
+        load_train_config(path, overrides=["runner.teacher.class_name=MLPModel"])
+    quick = os.path.join(REPO, "configs", "train", "quick.yaml")
+    with pytest.raises(ConfigError, match="only with runner.class_name DistillationRunner"):
+        load_train_config(quick, overrides=["runner.expert.kind=oracle"])
+
+
+def test_train_cli_distills_from_the_oracle(tmp_path):
+    """train.py runs oracle DAgger end to end: no teacher checkpoint, a BC loss, a deployable export."""
+    root = str(tmp_path / "logs")
+    res = subprocess.run(
+        [sys.executable, "train.py", "--config", "configs/train/distill_oracle.yaml", "--num-envs", "4",
+         "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
+         "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"],
+        cwd=REPO, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "teacher: the scripted 'oracle' expert" in res.stdout
+    (run,) = os.listdir(os.path.join(root, "shield_nav"))
+    run_dir = os.path.join(root, "shield_nav", run)
+    ckpt = torch.load(os.path.join(run_dir, "model_0.pt"), weights_only=False)
+    assert ckpt["teacher_state_dict"] == {} and ckpt["infos"]["config"]["runner"]["expert"]["kind"] == "oracle"
+    assert os.path.isfile(os.path.join(run_dir, "exported", "policy.onnx"))

@@ -17,8 +17,11 @@ def test_train_configs_load(path):
     d = rsl_rl_train_cfg(cfg)
     if cfg.runner.class_name == "DistillationRunner":
         assert {"student", "teacher"} <= set(d) and "critic" not in d
-        assert cfg.env.local_map.enabled
-        assert cfg.runner.teacher_checkpoint or os.path.basename(path) == "distill.yaml"  # the shared partial
+        if cfg.runner.expert.kind:  # a scripted expert labels the states: no map, no teacher checkpoint
+            assert d["obs_groups"]["teacher"] == ["expert"] and not cfg.env.local_map.enabled
+        else:
+            assert cfg.env.local_map.enabled
+            assert cfg.runner.teacher_checkpoint or os.path.basename(path) == "distill.yaml"  # the shared partial
     else:
         assert {"actor", "critic"} <= set(d)
     if os.path.basename(path).startswith("teacher_"):

@@ -201,6 +201,15 @@ class RunnerConfig:
     start this run, e.g. the previous round's ``checkpoints/<f>_distilled/model.pt`` when re-distilling from a longer
     trained teacher, and its stored curriculum levels when the env count matches. The optimizer and the iteration
     count start fresh; empty = a randomly initialised student."""
+    actor_init: str = ""
+    """PPO only, optional: a checkpoint whose actor starts this run's actor (PPO fine-tuning of a distilled student):
+    a distillation checkpoint's ``student_state_dict`` (e.g. ``checkpoints/oracle_distilled/model.pt``) or a PPO
+    checkpoint's ``actor_state_dict``, with its observation normaliser and action std, and its stored curriculum
+    levels when the env count matches. The critic, optimizer and iteration count start fresh."""
+    critic_warmup_iterations: int = 0
+    """PPO only: for the first this many iterations of a new run the actor's parameters are frozen, so the fresh
+    critic learns the values of the loaded actor before its advantages move the policy (needs
+    ``algorithm.schedule: fixed``: with a frozen actor the KL is 0 and the adaptive rule would raise the rate)."""
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     """Distillation only, optional: a scripted expert as the teacher (see :class:`ExpertConfig`)."""
     init_at_random_ep_len: bool = True
@@ -263,6 +272,11 @@ class TrainConfig:
         require(got == algo, f"{prefix}runner.algorithm.class_name",
                 f"must be {algo!r} with runner.class_name {r.class_name!r}, got {got!r}")  # fmt: skip
         require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
+        require(not distill or not r.actor_init, f"{prefix}runner.actor_init", "only with OnPolicyRunner (PPO)")
+        require(r.critic_warmup_iterations >= 0, f"{prefix}runner.critic_warmup_iterations", "must be >= 0")
+        require(r.critic_warmup_iterations == 0 or (not distill and r.algorithm.schedule == "fixed"),
+                f"{prefix}runner.critic_warmup_iterations",
+                "needs runner.class_name OnPolicyRunner and runner.algorithm.schedule 'fixed'")  # fmt: skip
         for key in ("student", "teacher") if distill else ("actor", "critic"):
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
         require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
@@ -313,7 +327,8 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
     and ``teacher``. Model and algorithm keys their classes do not take are dropped.
     """
     d = to_dict(cfg.runner)
-    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init", "expert"):
+    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init", "expert",
+                "actor_init", "critic_warmup_iterations"):
         d.pop(key)
     teacher = d.pop("teacher")
     if cfg.runner.class_name == "DistillationRunner":
@@ -460,6 +475,8 @@ def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> No
             )
     if distill and resume is None and cfg.runner.student_init and not os.path.isfile(cfg.runner.student_init):
         raise ConfigError(f"config key 'runner.student_init': no such file {cfg.runner.student_init!r}")
+    if resume is None and cfg.runner.actor_init and not os.path.isfile(cfg.runner.actor_init):
+        raise ConfigError(f"config key 'runner.actor_init': no such file {cfg.runner.actor_init!r}")
 
 
 def _restore_levels(env: Any, levels: list[int] | None) -> None:
@@ -525,6 +542,20 @@ def train(
         infos = runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device) or {}
         print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
         _restore_levels(env, infos.get("curriculum_levels"))
+    if cfg.runner.actor_init and resume is None:
+        ckpt = torch.load(cfg.runner.actor_init, map_location=device, weights_only=False)
+        weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict")
+        if weights is None:
+            raise ConfigError(f"config key 'runner.actor_init': {cfg.runner.actor_init!r} holds no actor or student")
+        runner.alg._raw_actor.load_state_dict(weights)
+        print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
+        _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"))
+    warmup_end = cfg.runner.critic_warmup_iterations if resume is None else 0
+    actor_params = list(runner.alg._raw_actor.parameters()) if warmup_end else []
+    for p in actor_params:
+        p.requires_grad_(False)
+    if warmup_end:
+        print(f"[train] critic warm-up: the actor is frozen for {warmup_end} iteration(s)", flush=True)
     if resume is not None:
         infos = runner.load(str(resume), map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
@@ -546,6 +577,11 @@ def train(
         if "start_it" in kwargs:
             kwargs["start_it"] = 0
         log_fn(*args, **kwargs)
+        if actor_params and runner.current_learning_iteration + 1 >= warmup_end:
+            for p in actor_params:
+                p.requires_grad_(True)
+            actor_params.clear()
+            print(f"[train] critic warm-up done: the actor trains from iteration {warmup_end}", flush=True)
         if stop.signum is not None:
             raise _StopTraining
 

@@ -108,19 +108,52 @@ def test_expert_config_errors_name_the_key():
         load_train_config(quick, overrides=["runner.expert.kind=oracle"])
 
 
-def test_train_cli_distills_from_the_oracle(tmp_path):
-    """train.py runs oracle DAgger end to end: no teacher checkpoint, a BC loss, a deployable export."""
+def run_train(*args):
+    return subprocess.run([sys.executable, "train.py", *args], cwd=REPO, capture_output=True, text=True, timeout=240)
+
+
+def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
+    """train.py runs oracle DAgger end to end (no teacher checkpoint, a deployable export), then PPO fine-tunes that
+    student: the actor starts as the student, stays frozen through the critic warm-up, then trains."""
     root = str(tmp_path / "logs")
-    res = subprocess.run(
-        [sys.executable, "train.py", "--config", "configs/train/distill_oracle.yaml", "--num-envs", "4",
-         "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
-         "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"],
-        cwd=REPO, capture_output=True, text=True, timeout=240,
-    )  # fmt: skip
+    small = ["--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]",
+             "runner.algorithm.num_mini_batches=2"]  # fmt: skip
+    res = run_train("--config", "configs/train/distill_oracle.yaml", "--max-iterations", "1", *small)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "teacher: the scripted 'oracle' expert" in res.stdout
     (run,) = os.listdir(os.path.join(root, "shield_nav"))
     run_dir = os.path.join(root, "shield_nav", run)
-    ckpt = torch.load(os.path.join(run_dir, "model_0.pt"), weights_only=False)
+    student_path = os.path.join(run_dir, "model_0.pt")
+    ckpt = torch.load(student_path, weights_only=False)
     assert ckpt["teacher_state_dict"] == {} and ckpt["infos"]["config"]["runner"]["expert"]["kind"] == "oracle"
     assert os.path.isfile(os.path.join(run_dir, "exported", "policy.onnx"))
+
+    res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
+                    f"runner.actor_init={student_path}", "runner.critic_warmup_iterations=1",
+                    "runner.save_interval=1")  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "actor initialised from" in res.stdout and "critic warm-up done" in res.stdout
+    (ft,) = [d for d in os.listdir(os.path.join(root, "shield_nav")) if d.endswith("_finetuned")]
+    ft_dir = os.path.join(root, "shield_nav", ft)
+    after_warmup = torch.load(os.path.join(ft_dir, "model_0.pt"), weights_only=False)["actor_state_dict"]
+    after_ppo = torch.load(os.path.join(ft_dir, "model_1.pt"), weights_only=False)["actor_state_dict"]
+    assert after_warmup.keys() == ckpt["student_state_dict"].keys()
+    for k, v in ckpt["student_state_dict"].items():
+        if "normalizer" not in k:  # running statistics keep updating while the weights are frozen
+            torch.testing.assert_close(after_warmup[k], v)
+    moved = [k for k in after_ppo if "normalizer" not in k and not torch.equal(after_ppo[k], after_warmup[k])]
+    assert moved  # the actor trains once the warm-up is over
+
+
+def test_fine_tune_inputs_fail_fast(tmp_path):
+    root = str(tmp_path / "logs")
+    res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--log-dir", root,
+                    "--set", "runner.actor_init=nowhere/model.pt")  # fmt: skip
+    assert res.returncode == 2 and "runner.actor_init" in res.stderr and "nowhere/model.pt" in res.stderr
+    res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--log-dir", root,
+                    "--set", "runner.algorithm.schedule=adaptive")  # fmt: skip
+    assert res.returncode == 2 and "runner.critic_warmup_iterations" in res.stderr
+    res = run_train("--config", "configs/train/distill_oracle.yaml", "--log-dir", root,
+                    "--set", "runner.actor_init=checkpoints/dijkstra_cbf/model.pt")  # fmt: skip
+    assert res.returncode == 2 and "runner.actor_init" in res.stderr and "OnPolicyRunner" in res.stderr
+    assert not os.path.exists(root)  # nothing was started

@@ -557,7 +557,9 @@ def train(
     if warmup_end:
         print(f"[train] critic warm-up: the actor is frozen for {warmup_end} iteration(s)", flush=True)
     if resume is not None:
-        infos = runner.load(str(resume), map_location=device) or {}
+        # A scripted expert saved no teacher weights (an empty dict): load everything else.
+        load_cfg = {"student": True, "optimizer": True, "iteration": True} if cfg.runner.expert.kind else None
+        infos = runner.load(str(resume), load_cfg=load_cfg, map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
         runner.current_learning_iteration = start_it
         runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))

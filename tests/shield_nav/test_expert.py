@@ -127,6 +127,9 @@ def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
     ckpt = torch.load(student_path, weights_only=False)
     assert ckpt["teacher_state_dict"] == {} and ckpt["infos"]["config"]["runner"]["expert"]["kind"] == "oracle"
     assert os.path.isfile(os.path.join(run_dir, "exported", "policy.onnx"))
+    res = run_train("--resume", student_path, "--max-iterations", "2")  # no teacher weights to restore
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "continuing at iteration 1" in res.stdout and os.path.isfile(os.path.join(run_dir, "model_1.pt"))
 
     res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
                     f"runner.actor_init={student_path}", "runner.critic_warmup_iterations=1",

@@ -71,6 +71,11 @@ class OracleConfig:
     geodesic reward) instead of the whole goal region's field; falls back to the region field when the env has no
     anchor fields. The expert of the oracle-DAgger student uses it (it leads to the goal point itself); the
     evaluation rows keep the region field their published numbers were measured with."""
+    field_radius: float = 0.0
+    """> 0: descend geodesic fields the oracle builds itself (region and goal anchors, cached on disk like the
+    env's), with obstacles inflated by this radius [m] instead of the env's vehicle radius (0.2 m). The shortest
+    paths then keep this clearance, and inside the inflated margin the field's values (nearest traversable node +
+    distance to it) lead back out. 0: the env's own fields."""
 
 
 @dataclass
@@ -189,12 +194,31 @@ class OracleController(Controller):
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg
 
+    def _fields(self, env: Any) -> tuple[Any, Any]:
+        """(region FieldStack, GoalAnchorFields or None) to descend: the env's, or the oracle's inflated ones."""
+        radius = self.cfg.oracle.field_radius
+        if radius <= 0:
+            return env.field_stack, getattr(env, "anchor_fields", None)
+        own = getattr(self, "_own", None)
+        if own is None or own[0] is not env:
+            from envs.fields import FieldStack, build_fields
+            from envs.fields.anchors import GoalAnchorFields
+
+            res = env.cfg.scenes.field_resolution
+            fields = [build_fields(s, resolution=res, vehicle_radius=radius) for s in env.scenes]
+            anchors = env.anchor_fields
+            k = anchors.count if anchors is not None else 0
+            own = (env, FieldStack(fields), GoalAnchorFields(env.scenes, fields, k) if k > 0 else None)
+            self._own = own
+        return own[1], own[2]
+
     def _geodesic(self, env: Any, ids: np.ndarray, pts: np.ndarray, per_env: int) -> np.ndarray:
         """Phi at ``per_env`` consecutive points per env: the episode goal's anchor field or the region field."""
-        if self.cfg.oracle.episode_goal and getattr(env, "anchor_fields", None) is not None:
+        stack, anchor_fields = self._fields(env)
+        if self.cfg.oracle.episode_goal and anchor_fields is not None:
             anchors = np.repeat(env.anchor_buf, per_env)
-            return env.anchor_fields.geodesic(np.repeat(ids, per_env), anchors, pts)
-        return env.field_stack.geodesic(np.repeat(ids, per_env), pts)
+            return anchor_fields.geodesic(np.repeat(ids, per_env), anchors, pts)
+        return stack.geodesic(np.repeat(ids, per_env), pts)
 
     def commands(self, env: Any) -> np.ndarray:  # noqa: D102
         oc = self.cfg.oracle

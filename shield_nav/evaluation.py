@@ -100,6 +100,11 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "oracle_distilled": RowConfig("Oracle-DAgger student (depth)", "policy", "oracle_distilled"),
     "oracle_distilled_shield": RowConfig("Oracle-DAgger student + shield", "policy", "oracle_distilled",
                                          shield=True),  # fmt: skip
+    "distance_finetuned": RowConfig("Distance (oracle DAgger + PPO)", "policy", "distance_finetuned"),
+    "dijkstra_finetuned": RowConfig("Dijkstra (oracle DAgger + PPO)", "policy", "dijkstra_finetuned"),
+    "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
+    "full_finetuned": RowConfig("Full (oracle DAgger + PPO) = Dijkstra + CBF + shield", "policy",
+                                "dijkstra_cbf_finetuned", shield=True),  # fmt: skip
     "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
     "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
@@ -139,7 +144,8 @@ class EvalConfig:
             k: f"checkpoints/{k}"
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
                       "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
-                      "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled")  # fmt: skip
+                      "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "distance_finetuned",
+                      "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

@@ -55,6 +55,25 @@ def test_episode_goal_field_is_the_anchor_field():
     assert not np.allclose(want_ep, want_reg)  # a goal point is farther than the nearest point of the goal box
 
 
+def test_inflated_expert_fields_are_built_with_their_radius():
+    """``field_radius`` > 0: the oracle descends fields built with that inflation (independently rebuilt here)."""
+    from envs.fields import FieldStack, build_fields
+
+    env = NavigationEnv(num_envs=8, **SMALL)
+    env.reset(seed=2)
+    oracle = OracleController(BaselineConfig(oracle=OracleConfig(field_radius=0.5)))
+    stack = FieldStack([build_fields(s, resolution=env.cfg.scenes.field_resolution, vehicle_radius=0.5)
+                        for s in env.scenes])  # fmt: skip
+    rng = np.random.default_rng(0)
+    lo, hi = env.scenes[0].bounds_lo, env.scenes[0].bounds_hi
+    pts = rng.uniform(lo, hi, (64, 3))
+    ids = np.zeros(64, dtype=np.int64)
+    got = oracle._geodesic(env, ids, pts, 1)
+    np.testing.assert_allclose(got, stack.geodesic(ids, pts))
+    assert not np.allclose(got, env.field_stack.geodesic(ids, pts))  # the 0.2 m field differs near obstacles
+    assert oracle._fields(env)[0] is oracle._fields(env)[0]  # built once per env
+
+
 def test_expert_group_follows_resets_and_steps():
     expert = OracleExpert()
     vec = RslRlVecEnv(NavigationEnv(num_envs=4, **SMALL), expert=expert)

@@ -550,12 +550,6 @@ def train(
         runner.alg._raw_actor.load_state_dict(weights)
         print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
         _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"))
-    warmup_end = cfg.runner.critic_warmup_iterations if resume is None else 0
-    actor_params = list(runner.alg._raw_actor.parameters()) if warmup_end else []
-    for p in actor_params:
-        p.requires_grad_(False)
-    if warmup_end:
-        print(f"[train] critic warm-up: the actor is frozen for {warmup_end} iteration(s)", flush=True)
     if resume is not None:
         # A scripted expert saved no teacher weights (an empty dict): load everything else.
         load_cfg = {"student": True, "optimizer": True, "iteration": True} if cfg.runner.expert.kind else None
@@ -567,6 +561,13 @@ def train(
         _restore_levels(env, infos.get("curriculum_levels"))
         print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
     remaining = cfg.max_iterations - start_it
+    # Critic warm-up: iterations [0, warmup_end) run with a frozen actor (also when a run resumes inside them).
+    warmup_end = cfg.runner.critic_warmup_iterations if cfg.runner.class_name == "OnPolicyRunner" else 0
+    actor_params = list(runner.alg._raw_actor.parameters()) if start_it < warmup_end else []
+    for p in actor_params:
+        p.requires_grad_(False)
+    if actor_params:
+        print(f"[train] critic warm-up: the actor is frozen until iteration {warmup_end}", flush=True)
 
     # Stop cleanly at the next iteration boundary on SIGINT/SIGTERM: rsl-rl's logger.log runs once per iteration,
     # right after the update, so wrapping it gives a hook without copying the runner's loop.

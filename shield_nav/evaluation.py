@@ -100,6 +100,10 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "oracle_distilled": RowConfig("Oracle-DAgger student (depth)", "policy", "oracle_distilled"),
     "oracle_distilled_shield": RowConfig("Oracle-DAgger student + shield", "policy", "oracle_distilled",
                                          shield=True),  # fmt: skip
+    "oracle_distilled_shapes": RowConfig("Oracle-DAgger student, all-shapes training (depth)", "policy",
+                                         "oracle_distilled_shapes"),  # fmt: skip
+    "oracle_distilled_shapes_shield": RowConfig("Oracle-DAgger student, all-shapes training + shield", "policy",
+                                                "oracle_distilled_shapes", shield=True),  # fmt: skip
     "distance_finetuned": RowConfig("Distance (oracle DAgger + PPO)", "policy", "distance_finetuned"),
     "dijkstra_finetuned": RowConfig("Dijkstra (oracle DAgger + PPO)", "policy", "dijkstra_finetuned"),
     "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
@@ -122,7 +126,7 @@ class SceneSelection:
     """Which scenes a run uses."""
 
     family: str = "ablation"
-    """Scene family (ablation, benchmark, dynamic, forest; train is allowed but those scenes were trained on)."""
+    """Scene family (ablation, benchmark, dynamic, forest; train and train_shapes are allowed but were trained on)."""
     indices: list[int] = field(default_factory=list)
     """Scene indices; empty means the whole family."""
 
@@ -144,8 +148,8 @@ class EvalConfig:
             k: f"checkpoints/{k}"
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
                       "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
-                      "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "distance_finetuned",
-                      "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
+                      "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "oracle_distilled_shapes",
+                      "distance_finetuned", "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

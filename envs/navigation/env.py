@@ -18,6 +18,7 @@ from envs.fields.anchors import GoalAnchorFields
 from envs.navigation import rewards as R
 from envs.navigation.config import REWARD_TERMS, NavConfig
 from envs.scenes import make_scene
+from envs.scenes.families import is_training_family
 from envs.vehicle.rotations import euler_zyx_to_rot, rot_to_quat
 from envs.vehicle.vehicles import Vehicles
 
@@ -202,7 +203,7 @@ class NavigationEnv(VectorEnv):
             self.sim_time = 0.0  # moving obstacles restart with a full reset (their clock is shared per scene)
         if seed is not None or not hasattr(self, "_started"):
             self._started = True
-            if self.cfg.curriculum.enabled and self.cfg.scenes.family == "train":
+            if self.cfg.curriculum.enabled and is_training_family(self.cfg.scenes.family):
                 hi = min(self.cfg.curriculum.initial_max_level, len(self.scenes) - 1)
                 self.level_buf[:] = self._rng.integers(0, hi + 1, self.num_envs)
             self.fail_streak_buf[:] = 0
@@ -467,7 +468,7 @@ class NavigationEnv(VectorEnv):
         if m == 0:
             return
         if scene_ids is None:
-            if cfg.curriculum.enabled and cfg.scenes.family == "train":
+            if cfg.curriculum.enabled and is_training_family(cfg.scenes.family):
                 scene_ids = self.level_buf[env_ids]
             else:
                 scene_ids = rng.integers(0, len(self.scenes), m)
@@ -568,7 +569,7 @@ class NavigationEnv(VectorEnv):
     def _update_curriculum(self, env_ids: np.ndarray, succeeded: np.ndarray) -> None:
         """Up a level on success; down after ``demote_after`` consecutive failures; random level past the top."""
         c = self.cfg.curriculum
-        if not (c.enabled and self.cfg.scenes.family == "train"):
+        if not (c.enabled and is_training_family(self.cfg.scenes.family)):
             return
         top = len(self.scenes) - 1
         lvl = self.level_buf[env_ids]

@@ -16,6 +16,7 @@ from envs.scenes.families import (
     Family,
     family_scenes,
     family_seed_range,
+    is_training_family,
     make_scene,
 )
 from envs.scenes.primitives import Box, Capsule, Cylinder, Primitive, Sphere, primitive_from_dict
@@ -35,6 +36,7 @@ __all__ = [
     "Sphere",
     "family_scenes",
     "family_seed_range",
+    "is_training_family",
     "make_scene",
     "primitive_from_dict",
 ]

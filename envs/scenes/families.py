@@ -156,6 +156,24 @@ def _gen_train(rng: np.random.Generator, index: int, u: float) -> dict:
     return {"primitives": tuple(prims)}
 
 
+TRAIN_SHAPES_KINDS = {
+    "tree": 0.22, "vcyl": 0.18, "icyl": 0.14, "pole": 0.12, "frame": 0.12, "box": 0.08, "wall": 0.08, "sphere": 0.06,
+}  # fmt: skip
+"""Obstacle mix of the ``train_shapes`` family: the training family's trees and cylinders plus every other kind."""
+
+
+def _gen_train_shapes(rng: np.random.Generator, index: int, u: float) -> dict:
+    # Not the paper's training set (trees and cylinders only): the same density ramp over every obstacle kind the
+    # evaluation families use, with U-traps from level 5 and dead ends from level 8. Seeds stay in the training
+    # range, so the evaluation scenes remain held out; only their obstacle kinds are no longer unseen.
+    gap = _lerp(1.6, MIN_GAP, u)
+    placer = _placer(rng, LO, HI, gap)
+    prims = _clutter(rng, placer, {"utrap": 1.0}, max(0, round(_lerp(-1.0, 4.0, u))), LO[2], HI[2])
+    prims += _clutter(rng, placer, {"deadend": 1.0}, max(0, round(_lerp(-0.5, 2.0, u))), LO[2], HI[2])
+    prims += _clutter(rng, placer, TRAIN_SHAPES_KINDS, int(round(_lerp(40, 330, u))), LO[2], HI[2])
+    return {"primitives": tuple(prims)}
+
+
 def _gen_ablation(rng: np.random.Generator, index: int, u: float) -> dict:
     # Inclined and vertical cylinders, frames, thin poles; U-traps and dead-end corridors are always present
     # (placed first so the scene never saturates before they fit).
@@ -275,6 +293,11 @@ FAMILIES: dict[str, Family] = {
     for f in (
         Family("train", 16, "train", 0, 1, "16 training levels: trees and cylinders, density rising", _gen_train),
         Family(
+            "train_shapes", 16, "train", 0, 6,
+            "16 training levels over every obstacle kind (not the paper's training set), density rising",
+            _gen_train_shapes,
+        ),
+        Family(
             "ablation", 8, "eval", 1_000_000, 2,
             "8 unseen scenes: inclined/vertical cylinders, frames, thin poles, U-traps and dead ends", _gen_ablation,
         ),
@@ -292,6 +315,11 @@ FAMILIES: dict[str, Family] = {
     )
 }  # fmt: skip
 """All registered families by name."""
+
+
+def is_training_family(family: str) -> bool:
+    """Whether ``family`` draws from the training seed range (its indices are curriculum levels)."""
+    return _family(family).split == "train"
 
 
 def family_seed_range(family: str) -> range:

@@ -312,8 +312,9 @@ def test_teacher_local_map_is_the_esdf_on_the_heading_frame_grid():
     assert "teacher" not in info
 
 
-def test_rsl_rl_adapter_restores_curriculum_levels():
-    vec = RslRlVecEnv(NavigationEnv(num_envs=4, **{"scenes.indices": [0, 1, 2]}))
+@pytest.mark.parametrize("family", ["train", "train_shapes"])
+def test_rsl_rl_adapter_restores_curriculum_levels(family):
+    vec = RslRlVecEnv(NavigationEnv(num_envs=4, **{"scenes.family": family, "scenes.indices": [0, 1, 2]}))
     vec.set_curriculum_levels([2, 0, 1, 2])
     assert vec.curriculum_levels == [2, 0, 1, 2]
     np.testing.assert_array_equal(vec.env.scene_id_buf, [2, 0, 1, 2])  # every episode restarted on its level

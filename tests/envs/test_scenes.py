@@ -16,6 +16,7 @@ from envs.scenes import (
     MovingObstacle,
     Scene,
     Sphere,
+    is_training_family,
     make_scene,
 )
 from envs.scenes import composites as C
@@ -25,7 +26,7 @@ from envs.scenes.sdf import primitive_sdf, union_sdf
 
 def test_family_sizes_match_the_paper():
     assert {k: f.size for k, f in FAMILIES.items()} == {
-        "train": 16, "ablation": 8, "benchmark": 16, "dynamic": 4, "forest": 4,
+        "train": 16, "train_shapes": 16, "ablation": 8, "benchmark": 16, "dynamic": 4, "forest": 4,
     }  # fmt: skip
 
 
@@ -73,6 +74,24 @@ def test_train_uses_only_trees_and_cylinders():
     assert kinds <= {"cylinder", "capsule", "sphere"}  # trunks, cylinders; canopies are capsules/spheres
 
 
+def test_train_shapes_has_every_kind_and_the_train_density_ramp():
+    scenes = [make_scene("train_shapes", i) for i in range(16)]
+    counts = [len(s.primitives) for s in scenes]
+    assert counts[-1] > 4 * counts[0] and np.all(np.diff(counts[::3]) > 0)
+    top = scenes[-1].primitives
+    assert {p.kind for p in top} == {"cylinder", "capsule", "box", "sphere"}
+    # Thin poles (r < 0.08 m) and inclined segments, which the paper's training family never has.
+    assert any(p.kind in ("cylinder", "capsule") and p.radius < 0.08 for p in top)
+    axes = [np.subtract(p.p1, p.p0) for p in top if p.kind == "cylinder"]
+    assert any(0.2 < abs(a[2]) / np.linalg.norm(a) < 0.99 for a in axes)
+    # U-traps (round(-1 + 5u)) from level 5 and dead ends (round(-0.5 + 2.5u)) from level 8, three 0.2 m thick
+    # walls each (half-thickness exactly 0.1; free-standing walls draw theirs from U(0.08, 0.15)):
+    # level 4 (u = 0.27): 0 + 0; level 5 (u = 0.33): 1 + 0; level 8 (u = 0.53): 2 + 1; level 15: 4 + 2.
+    for i, traps in ((4, 0), (5, 1), (8, 3), (15, 6)):
+        trap_walls = [p for p in scenes[i].primitives if p.kind == "box" and min(p.half[:2]) == 0.1]
+        assert len(trap_walls) == 3 * traps
+
+
 def test_ablation_scenes_contain_u_traps_and_dead_ends():
     for i in range(8):
         boxes = [p for p in make_scene("ablation", i).primitives if p.kind == "box"]
@@ -91,14 +110,19 @@ def test_benchmark_has_12_geometric_and_4_perlin_scenes():
 
 def test_train_and_eval_seeds_are_disjoint_and_enforced():
     assert set(TRAIN_SEEDS).isdisjoint(range(EVAL_SEEDS.start, EVAL_SEEDS.stop))
+    training = {"train", "train_shapes"}
     for name, fam in FAMILIES.items():
-        allowed = TRAIN_SEEDS if name == "train" else EVAL_SEEDS
-        assert fam.default_seed in allowed and (fam.split == "train") == (name == "train")
+        allowed = TRAIN_SEEDS if name in training else EVAL_SEEDS
+        assert fam.default_seed in allowed and (fam.split == "train") == (name in training)
+        assert is_training_family(name) == (name in training)
     with pytest.raises(ValueError, match="seed range"):
         make_scene("train", 0, seed=EVAL_SEEDS.start)
     with pytest.raises(ValueError, match="seed range"):
         make_scene("benchmark", 0, seed=0)
-    train = {make_scene("train", i).digest() for i in range(16)}
+    with pytest.raises(ValueError, match="seed range"):
+        make_scene("train_shapes", 0, seed=EVAL_SEEDS.start)
+    train = {make_scene(f, i).digest() for f in ("train", "train_shapes") for i in range(16)}
+    assert len(train) == 32
     evals = {make_scene(f, i).digest() for f in ("ablation", "benchmark") for i in range(FAMILIES[f].size)}
     assert train.isdisjoint(evals)
 

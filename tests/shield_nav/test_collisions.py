@@ -1,0 +1,93 @@
+"""Collision breakdown: hit classes against hand-placed surfaces, and the CLI over an eval output folder."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from envs.scenes import Box, Capsule, Cylinder, Scene, Sphere, make_scene
+from envs.scenes.sdf import union_sdf
+from shield_nav.collisions import breakdown, classify_hit, format_table, main, primitive_class
+
+PRIMS = (
+    Cylinder((10.0, 0.0, 0.0), (10.0, 0.0, 3.0), 0.3),  # vertical post
+    Cylinder((20.0, -1.0, 1.5), (20.0, 1.0, 1.5), 0.05),  # thin horizontal bar
+    Capsule((30.0, 0.0, 0.1), (30.8, 0.0, 2.5), 0.05),  # thin pole tilted 18.4 deg from vertical
+    Box((40.0, 0.0, 1.5), (0.5, 0.5, 1.5)),
+    Sphere((50.0, 0.0, 1.5), 0.5),
+)
+
+
+def test_primitive_classes_follow_kind_radius_and_axis():
+    assert [primitive_class(p) for p in PRIMS] == [
+        "cylinder vertical", "cylinder thin horizontal", "capsule thin inclined", "box", "sphere",
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("pos", "want"),
+    [
+        ((10.0 - 0.3 - 0.19, 0.0, 1.5), "cylinder vertical"),  # 0.19 m in front of the post's side
+        ((20.0 - 0.05 - 0.19, 0.0, 1.5), "cylinder thin horizontal"),
+        ((40.0 - 0.5 - 0.19, 0.0, 1.5), "box"),
+        ((50.0 - 0.5 - 0.19, 0.0, 1.5), "sphere"),
+        ((60.0, 0.0, 0.19), "floor"),  # nothing within 10 m but the floor, 0.19 m below
+    ],
+)
+def test_classify_hit_names_the_nearest_surface(pos, want):
+    scene = Scene(primitives=PRIMS)
+    got, dist = classify_hit(scene, np.array(pos))
+    assert got == want and dist == pytest.approx(0.19, abs=1e-9)
+
+
+def test_classify_hit_inclined_pole_and_unresolved_and_bad_input():
+    scene = Scene(primitives=PRIMS)
+    # Axis direction (0.8, 0, 2.4) ~ (1, 0, 3)/sqrt(10); the horizontal unit normal to it in the xz plane is (3, 0, -1)/sqrt(10).
+    mid = np.array([30.4, 0.0, 1.3])
+    pos = mid - (0.05 + 0.19) * np.array([3.0, 0.0, -1.0]) / math.sqrt(10.0)
+    got, dist = classify_hit(scene, pos)
+    assert got == "capsule thin inclined" and dist == pytest.approx(0.19, abs=1e-9)
+    assert classify_hit(scene, np.array([25.0, 8.0, 1.5]))[0] == "unresolved"  # 1.5 m from the floor, >4 m else
+    with pytest.raises(ValueError, match="finite"):
+        classify_hit(scene, np.array([np.nan, 0.0, 1.0]))
+
+
+def _unit(tmp_path, trials):
+    units = tmp_path / "units"
+    units.mkdir()
+    unit = {"row": "r", "family": "ablation", "scene": 0, "speed": 3.0, "trials": trials}
+    (units / "r__ablation-00__v3.json").write_text(json.dumps(unit))
+
+
+def test_breakdown_over_an_eval_folder_and_cli(tmp_path, capsys):
+    scene = make_scene("ablation", 0)
+    box = next(p for p in scene.primitives if p.kind == "box")
+    # A point 0.19 m outside the box's +x face (box frame rotated by its yaw quaternion (w, 0, 0, z)).
+    w, z = box.quat[0], box.quat[3]
+    yaw = 2.0 * math.atan2(z, w)
+    near_box = np.array(box.center) + (box.half[0] + 0.19) * np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    assert union_sdf(scene.primitives, near_box[None])[0] == pytest.approx(0.19, abs=1e-6)
+    # An open spot 0.15 m above the floor: every primitive farther than 0.5 m.
+    xs = np.stack(np.meshgrid(np.arange(5.0, 60.0, 0.5), np.arange(-15.0, 15.0, 0.5)), -1).reshape(-1, 2)
+    pts = np.c_[xs, np.full(len(xs), 0.15)]
+    near_floor = pts[np.argmax(union_sdf(scene.primitives, pts) > 0.5)]
+    traj = lambda p: [[0.0, 0.0, 1.5, 0.0], [*p, 3.0]]  # noqa: E731
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "collision", "traj": traj(near_box.tolist())},
+        {"trial": 1, "outcome": "collision", "traj": traj(near_floor.tolist())},
+        {"trial": 2, "outcome": "success", "traj": traj([63.0, 0.0, 1.5])},
+    ])  # fmt: skip
+    res = breakdown(str(tmp_path))
+    assert res == {("r", 3.0): {"box": 1, "floor": 1}}
+    assert "| r | 3 | 2 | 50 | 50 |" in format_table(res)
+    assert breakdown(str(tmp_path), speeds=[5.0]) == {}
+    main([str(tmp_path), "--json"])
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == [
+        {"row": "r", "speed": 3.0, "n": 2, "hits": {"box": 1, "floor": 1}}
+    ]
+
+
+def test_breakdown_rejects_a_folder_without_units(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not an eval.py output"):
+        breakdown(str(tmp_path))

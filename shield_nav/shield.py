@@ -38,6 +38,7 @@ STATUS_RELAXED = 2
 STATUS_FALLBACK = 3
 """Both QPs failed (solver error): a braking command within the actuator limits was returned."""
 STATUS_NAMES = {0: "inactive", 1: "solved", 2: "relaxed", 3: "fallback"}
+_E3 = np.array([[0.0, 0.0, 1.0]])
 
 
 @dataclass
@@ -85,6 +86,12 @@ class ShieldConfig:
     ground (floor at z = 0): with the |r|^2 barrier, floor points 2-8 m ahead of a vehicle cruising at 5 m/s and
     1.5 m altitude violate the HOCBF row although the flight is level, so an unfiltered floor keeps the shield on
     and pushes the vehicle up. Altitude is left to the policy (its height reward) as in the paper's training."""
+    min_altitude: float = 0.0
+    """If > 0, one more HOCBF row keeps the vehicle's height z (ground at z = 0, known from the state estimate, not
+    the camera) above this value [m]: the planar barrier B = z - min_altitude gives a_z >= -alpha1 v_z - alpha0 B.
+    Unlike the point barrier it is exact for a plane, so level flight never triggers it. 0: off (the paper's
+    depth-only shield). Without it the obstacle rows' corrections can push a vehicle into the unseen ground
+    (docs/shield.md, "Ground row")."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
@@ -94,6 +101,11 @@ class ShieldConfig:
         require(self.max_constraints >= 1, f"{prefix}max_constraints", "must be >= 1")
         require(self.azimuth_sectors >= 1 and self.elevation_sectors >= 1, f"{prefix}azimuth_sectors", "must be >= 1")
         require(self.voxel >= 0, f"{prefix}voxel", "must be >= 0")
+        require(
+            math.isfinite(self.min_altitude) and self.min_altitude >= 0,
+            f"{prefix}min_altitude",
+            f"must be finite and >= 0, got {self.min_altitude}",
+        )
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(
             self.solver in qpsolvers.available_solvers,
@@ -173,6 +185,11 @@ def _command_from_accel_1(ax: float, ay: float, az: float, psi: float, g: float)
     phi = math.atan2(ybz, zz)  # atan2(R21, R22)
     theta = -math.asin(min(1.0, max(-1.0, xz)))  # -asin(R20)
     return f, phi, theta
+
+
+def ground_row(z: float, v_z: float, alpha0: float, alpha1: float, min_altitude: float) -> float:
+    """Right-hand side b of the ground row a_z >= b: B = z - min_altitude, Bdot = v_z, Bddot = a_z."""
+    return -alpha1 * v_z - alpha0 * (z - min_altitude)
 
 
 def hocbf_rows(
@@ -280,7 +297,7 @@ class ShieldOutput:
     status: np.ndarray
     """(N,) int: one of STATUS_* (inactive, solved, relaxed, fallback)."""
     num_constraints: np.ndarray
-    """(N,) int: obstacle constraints in the QP."""
+    """(N,) int: obstacle constraints in the QP (the ground row, when on, is not counted)."""
     slack: np.ndarray
     """(N,) float: relaxation slack used (0 unless relaxed)."""
     solve_us: np.ndarray
@@ -497,7 +514,13 @@ class HOCBFShield:
             if self.cfg.memory_steps > 0:
                 self._remember(vid, np.asarray(pos_w[i], dtype=np.float64), r_sel)
             ncon[i] = len(b_vec)
-            if len(b_vec) and self._min_buf[0] < 0.0:  # smallest margin A a_raw - b < 0: a row is violated
+            violated = len(b_vec) > 0 and self._min_buf[0] < 0.0  # smallest margin A a_raw - b < 0
+            if self.cfg.min_altitude > 0:
+                b_g = ground_row(pos_w[i][2], vel_w[i][2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.min_altitude)
+                a_mat = np.vstack((a_mat, _E3))
+                b_vec = np.append(b_vec, b_g)
+                violated = violated or self._a_buf[2] < b_g
+            if violated:
                 a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
                 a_safe[i] = a_star
                 out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], cmd[i, 3], g)

@@ -18,6 +18,7 @@ from shield_nav.shield import (
     ShieldConfig,
     accel_from_command,
     command_from_accel,
+    ground_row,
     hocbf_rows,
 )
 
@@ -185,6 +186,8 @@ def test_config_errors_name_the_key():
         load_config(ShieldConfig, overrides=["solver=nope"])
     with pytest.raises(ConfigError, match="alpha0"):
         load_config(ShieldConfig, overrides=["alpha0=-1"])
+    with pytest.raises(ConfigError, match="min_altitude"):
+        load_config(ShieldConfig, overrides=["min_altitude=-0.1"])
     with pytest.raises(ValueError, match=r"index\(es\) \[1\]"):
         HOCBFShield().filter(np.array([[G, 0, 0, 0], [np.nan, 0, 0, 0]]), np.zeros((2, 3)), np.zeros((2, 3)),
                              points_w=[np.zeros((0, 3))] * 2)  # fmt: skip
@@ -258,3 +261,39 @@ def test_point_memory_keeps_constraints_for_obstacles_that_left_the_view():
     np.testing.assert_allclose(r, pos2 - pole)
     mem.reset([0])
     assert mem.filter(cmd, pos2, vel, points_w=[np.zeros((0, 3))]).num_constraints[0] == 0
+
+
+def test_ground_row_hand_computed_and_projection():
+    # Descending at 2 m/s, 0.5 m high, min_altitude 0.35, alpha0 16, alpha1 8: b = -8 (-2) - 16 (0.15) = 13.6.
+    assert ground_row(0.5, -2.0, 16.0, 8.0, 0.35) == pytest.approx(13.6)
+    cmd = np.array([[G, 0.0, 0.0, 0.3]])  # a_raw = 0 (hover thrust, level), yaw 0.3
+    pos, vel = np.array([[4.0, 1.0, 0.5]]), np.array([[3.0, 0.0, -2.0]])
+    nothing = [np.zeros((0, 3))]
+    off = HOCBFShield().filter(cmd, pos, vel, points_w=nothing)
+    assert not off.active[0] and np.array_equal(off.command, cmd)  # the paper's shield ignores the ground
+    on = HOCBFShield(ShieldConfig(min_altitude=0.35)).filter(cmd, pos, vel, points_w=nothing)
+    # The only row is a_z >= 13.6; the projection of a_raw = 0 onto it is (0, 0, 13.6), within the thrust limits.
+    assert on.active[0] and on.status[0] == STATUS_SOLVED and on.num_constraints[0] == 0
+    np.testing.assert_allclose(on.accel_safe[0], [0.0, 0.0, 13.6], atol=1e-6)
+    np.testing.assert_allclose(on.command[0], [G + 13.6, 0.0, 0.0, 0.3], atol=1e-6)
+    # Level flight at 1.5 m: b = -16 (1.15) < 0 = a_z, inactive, the command is returned bit for bit.
+    level = HOCBFShield(ShieldConfig(min_altitude=0.35)).filter(cmd, np.array([[4.0, 1.0, 1.5]]),
+                                                              np.array([[5.0, 0.0, 0.0]]), points_w=nothing)  # fmt: skip
+    assert not level.active[0] and np.array_equal(level.command, cmd)
+
+
+def test_ground_row_joins_the_obstacle_rows():
+    # A pole point ahead and slightly above forces a correction that dips the vehicle; near the ground the ground
+    # row caps how far down: the solution satisfies both the obstacle rows and a_z >= b_ground.
+    shield = HOCBFShield(ShieldConfig(min_altitude=0.35))
+    pos, vel = np.array([[0.0, 0.0, 0.45]]), np.array([[5.0, 0.0, -1.0]])
+    bar = np.array([[2.0, y, 0.9] for y in np.arange(-2.0, 2.01, 0.1)])  # a horizontal bar 2 m ahead, 0.45 m up
+    cmd = np.array([[G, 0.0, 0.0, 0.0]])
+    out = shield.filter(cmd, pos, vel, points_w=[bar])
+    r, a_mat, b_vec = shield.constraints(bar, pos[0], vel[0], np.zeros(3))
+    b_g = ground_row(0.45, -1.0, 16.0, 8.0, 0.35)
+    assert out.active[0] and len(b_vec) > 0
+    assert out.accel_safe[0, 2] >= b_g - 1e-6
+    assert np.all(a_mat @ out.accel_safe[0] >= b_vec - 1e-6)
+    plain = HOCBFShield().filter(cmd, pos, vel, points_w=[bar])
+    assert plain.accel_safe[0, 2] < b_g  # without the row the correction goes down, into the ground

@@ -43,7 +43,7 @@ def test_classify_hit_names_the_nearest_surface(pos, want):
 
 def test_classify_hit_inclined_pole_and_unresolved_and_bad_input():
     scene = Scene(primitives=PRIMS)
-    # Axis direction (0.8, 0, 2.4) ~ (1, 0, 3)/sqrt(10); the horizontal unit normal to it in the xz plane is (3, 0, -1)/sqrt(10).
+    # Axis direction (0.8, 0, 2.4) ~ (1, 0, 3)/sqrt(10); its unit normal in the xz plane is (3, 0, -1)/sqrt(10).
     mid = np.array([30.4, 0.0, 1.3])
     pos = mid - (0.05 + 0.19) * np.array([3.0, 0.0, -1.0]) / math.sqrt(10.0)
     got, dist = classify_hit(scene, pos)

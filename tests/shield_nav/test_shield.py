@@ -277,8 +277,8 @@ def test_ground_row_hand_computed_and_projection():
     np.testing.assert_allclose(on.accel_safe[0], [0.0, 0.0, 13.6], atol=1e-6)
     np.testing.assert_allclose(on.command[0], [G + 13.6, 0.0, 0.0, 0.3], atol=1e-6)
     # Level flight at 1.5 m: b = -16 (1.15) < 0 = a_z, inactive, the command is returned bit for bit.
-    level = HOCBFShield(ShieldConfig(min_altitude=0.35)).filter(cmd, np.array([[4.0, 1.0, 1.5]]),
-                                                              np.array([[5.0, 0.0, 0.0]]), points_w=nothing)  # fmt: skip
+    high, cruise = np.array([[4.0, 1.0, 1.5]]), np.array([[5.0, 0.0, 0.0]])
+    level = HOCBFShield(ShieldConfig(min_altitude=0.35)).filter(cmd, high, cruise, points_w=nothing)
     assert not level.active[0] and np.array_equal(level.command, cmd)
 
 

@@ -29,10 +29,18 @@ import warnings
 import torch
 import torch.nn as nn
 from rsl_rl.models import MLPModel
-from rsl_rl.modules import RNN, HiddenState
+from rsl_rl.modules import MLP, RNN, HiddenState
 from tensordict import TensorDict
 
-__all__ = ["DepthEncoder", "DepthGRUModel", "ExpertTeacher", "ExportedDepthGRU", "export_policy"]
+__all__ = [
+    "DepthEncoder",
+    "DepthGRUModel",
+    "ExpertTeacher",
+    "ExportedDepthGRU",
+    "HypothesisSelect",
+    "export_policy",
+    "expand_single_head",
+]
 
 
 class DepthEncoder(nn.Module):
@@ -108,6 +116,70 @@ class DepthEncoder(nn.Module):
         return self.proj(self.conv(depth))
 
 
+class HypothesisSelect(nn.Module):
+    """Pick one of ``K`` candidate actions by score: ``(..., K * A + K) -> (..., A)``.
+
+    The input holds the ``K`` candidates (``K * A`` values, candidate-major) followed by their ``K`` scores; the
+    output is the candidate with the largest score (the first one on ties). Exportable to TorchScript and ONNX
+    (``ArgMax`` + ``GatherElements``), so a multi-hypothesis student deploys as a plain ``(obs) -> action`` policy.
+    This is the multi-hypothesis output of Loquercio et al. 2021 ("Learning high-speed flight in the wild",
+    Science Robotics), there over trajectories, here over the next action.
+    """
+
+    def __init__(self, num_hypotheses: int, action_dim: int) -> None:  # noqa: D107
+        super().__init__()
+        self.num_hypotheses = int(num_hypotheses)
+        self.action_dim = int(action_dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The best-scored candidate ``(..., A)``."""
+        k, a = self.num_hypotheses, self.action_dim
+        lead = list(x.shape[:-1])
+        flat = x.reshape(-1, k * (a + 1))
+        hyps = flat[:, : k * a].reshape(-1, k, a)
+        best = flat[:, k * a :].argmax(dim=-1)
+        picked = torch.gather(hyps, 1, best.view(-1, 1, 1).expand(-1, 1, a)).squeeze(1)
+        return picked.reshape(lead + [a])
+
+    @torch.jit.unused
+    def split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Candidates ``(..., K, A)`` and scores ``(..., K)``."""
+        k, a = self.num_hypotheses, self.action_dim
+        return x[..., : k * a].unflatten(-1, (k, a)), x[..., k * a :]
+
+
+def expand_single_head(
+    state_dict: dict[str, torch.Tensor], model: DepthGRUModel, noise_std: float = 0.02, seed: int = 0
+) -> dict[str, torch.Tensor]:
+    """Map a single-head :class:`DepthGRUModel` state dict onto the ``K``-hypothesis ``model`` (a warm start).
+
+    Every weight is copied; the last layer of the head is repeated for each candidate, each copy perturbed by
+    Gaussian noise of ``noise_std`` (so the winner-takes-all loss can tell them apart), and the score rows start
+    at zero (all candidates equally likely). With ``noise_std = 0`` the new model acts exactly as the old one.
+    """
+    k = model.num_hypotheses
+    if k < 2:
+        raise ValueError("expand_single_head needs a model with num_hypotheses >= 2")
+    head = [key for key in state_dict if key.startswith("mlp.")]
+    if not head or any(key.startswith("mlp.0.0.") for key in head):
+        raise ValueError("expand_single_head: the state dict is not a single-head DepthGRUModel's")
+    last = max(int(key.split(".")[1]) for key in head)
+    gen = torch.Generator().manual_seed(seed)
+    out: dict[str, torch.Tensor] = {}
+    for key, value in state_dict.items():
+        if not key.startswith("mlp."):
+            out[key] = value
+            continue
+        _, idx, name = key.split(".", 2)
+        if int(idx) != last:
+            out[f"mlp.0.{idx}.{name}"] = value
+            continue
+        copies = [value + noise_std * torch.randn(value.shape, generator=gen, dtype=value.dtype) for _ in range(k)]
+        scores = value.new_zeros((k, *value.shape[1:]))
+        out[f"mlp.0.{idx}.{name}"] = torch.cat([*copies, scores], dim=0)
+    return out
+
+
 class DepthGRUModel(MLPModel):
     """Depth CNN + GRU + MLP actor for rsl-rl 5.x (paper, "Network Architecture").
 
@@ -141,6 +213,7 @@ class DepthGRUModel(MLPModel):
         cnn_feature_dim: int = 64,
         rnn_hidden_dim: int = 128,
         rnn_num_layers: int = 1,
+        num_hypotheses: int = 1,
     ) -> None:
         """Build the model from one batch of observations (only shapes are read).
 
@@ -162,7 +235,12 @@ class DepthGRUModel(MLPModel):
             cnn_feature_dim: Size of the visual feature ``f_CNN``.
             rnn_hidden_dim: GRU hidden size ``Hd`` (the MLP head's input).
             rnn_num_layers: Number of stacked GRU layers ``L``.
+            num_hypotheses: ``K``. With ``K > 1`` the MLP head outputs ``K`` candidate actions and ``K`` scores and
+                the model acts with the best-scored candidate (:class:`HypothesisSelect`); trained by
+                :class:`shield_nav.distillation.MultiHypothesisDistillation`. ``1``: the paper's single head.
         """
+        if int(num_hypotheses) < 1:
+            raise ValueError(f"DepthGRUModel: num_hypotheses must be >= 1, got {num_hypotheses}")
         self.latent_dim = rnn_hidden_dim  # read by _get_latent_dim() inside MLPModel.__init__
         # MLPModel.__init__ calls our _get_obs_dim (splits 1-D / 2-D groups), builds the normaliser over the 1-D
         # state (S values), the distribution and the MLP head (Hd -> hidden_dims -> distribution input).
@@ -175,6 +253,35 @@ class DepthGRUModel(MLPModel):
         )
         # GRU input: S state values + F image features.
         self.rnn = RNN(self.obs_dim + cnn_feature_dim, rnn_hidden_dim, rnn_num_layers, "gru")
+        self.num_hypotheses = int(num_hypotheses)
+        self.last_hypotheses: torch.Tensor | None = None
+        """Candidates ``(..., K, A)`` of the last forward pass (``K > 1`` only; read by the multi-hypothesis loss)."""
+        self.last_scores: torch.Tensor | None = None
+        """Their scores ``(..., K)`` (logits of which candidate the expert's action is nearest to)."""
+        if self.num_hypotheses > 1:
+            action_dim = self.mlp[-1].out_features  # the distribution's input (the mean, for a scalar std)
+            core = MLP(rnn_hidden_dim, self.num_hypotheses * (action_dim + 1), hidden_dims, activation)
+            self.mlp = nn.Sequential(core, HypothesisSelect(self.num_hypotheses, action_dim))
+
+    def forward(
+        self,
+        obs: TensorDict,
+        masks: torch.Tensor | None = None,
+        hidden_state: HiddenState = None,
+        stochastic_output: bool = False,
+    ) -> torch.Tensor:
+        """rsl-rl's ``MLPModel.forward``; with ``K > 1`` hypotheses it also keeps the candidates and scores."""
+        if self.num_hypotheses == 1:
+            return super().forward(obs, masks, hidden_state, stochastic_output)
+        raw = self.mlp[0](self.get_latent(obs, masks, hidden_state))  # (..., K * A + K)
+        self.last_hypotheses, self.last_scores = self.mlp[1].split(raw)
+        mean = self.mlp[1](raw)  # (..., A): the best-scored candidate
+        if self.distribution is None:
+            return mean
+        if stochastic_output:
+            self.distribution.update(mean)
+            return self.distribution.sample()
+        return self.distribution.deterministic_output(mean)
 
     # ------------------------------------------------------------------------------------------------ forward
 

@@ -89,6 +89,9 @@ class ActorConfig:
     """GRU hidden size."""
     rnn_num_layers: int = 1
     """Stacked GRU layers."""
+    num_hypotheses: int = 1
+    """Candidate actions of the head; ``K > 1`` acts with the best-scored one and needs
+    ``algorithm.class_name: "shield_nav.distillation:MultiHypothesisDistillation"`` (docs/training.md)."""
     distribution_cfg: DistributionConfig = field(default_factory=DistributionConfig)
     """Output distribution."""
 
@@ -120,7 +123,8 @@ class AlgorithmConfig:
     """
 
     class_name: str = "PPO"
-    """Algorithm class: ``PPO``, or ``Distillation`` with ``runner.class_name: DistillationRunner``."""
+    """Algorithm class: ``PPO``; with ``runner.class_name: DistillationRunner`` rsl-rl's ``Distillation`` or, for a
+    student with ``actor.num_hypotheses > 1``, ``shield_nav.distillation:MultiHypothesisDistillation``."""
     num_learning_epochs: int = 4
     """Passes over each rollout."""
     num_mini_batches: int = 4
@@ -151,6 +155,14 @@ class AlgorithmConfig:
     """Distillation only: steps of behaviour-cloning loss accumulated per gradient step (the student's BPTT window)."""
     loss_type: str = "mse"
     """Distillation only: ``mse`` or ``huber`` between the student's mean action and the teacher's."""
+    wta_epsilon: float = 0.05
+    """Multi-hypothesis distillation only: share of the loss spread over the losing candidates, in [0, 1)."""
+    selection_coef: float = 0.1
+    """Multi-hypothesis distillation only: weight of the cross-entropy that trains the candidate scores."""
+
+
+MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
+"""``runner.algorithm.class_name`` of a student with ``actor.num_hypotheses > 1``."""
 
 
 def _default_expert_params() -> BaselineConfig:
@@ -267,10 +279,17 @@ class TrainConfig:
             r.class_name in runners, f"{prefix}runner.class_name", f"must be one of {runners}, got {r.class_name!r}"
         )
         distill = r.class_name == "DistillationRunner"
-        algo = "Distillation" if distill else "PPO"
+        multi = r.actor.num_hypotheses > 1
+        algo = (MULTI_HYPOTHESIS_ALGORITHM if multi else "Distillation") if distill else "PPO"
         got = r.algorithm.class_name
+        require(r.actor.num_hypotheses >= 1, f"{prefix}runner.actor.num_hypotheses", "must be >= 1")
+        require(distill or not multi, f"{prefix}runner.actor.num_hypotheses",
+                "> 1 only with runner.class_name DistillationRunner")  # fmt: skip
         require(got == algo, f"{prefix}runner.algorithm.class_name",
-                f"must be {algo!r} with runner.class_name {r.class_name!r}, got {got!r}")  # fmt: skip
+                f"must be {algo!r} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
+                f"{r.actor.num_hypotheses}, got {got!r}")  # fmt: skip
+        require(0.0 <= r.algorithm.wta_epsilon < 1.0, f"{prefix}runner.algorithm.wta_epsilon", "must be in [0, 1)")
+        require(r.algorithm.selection_coef >= 0.0, f"{prefix}runner.algorithm.selection_coef", "must be >= 0")
         require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
         require(not distill or not r.actor_init, f"{prefix}runner.actor_init", "only with OnPolicyRunner (PPO)")
         require(r.critic_warmup_iterations >= 0, f"{prefix}runner.critic_warmup_iterations", "must be >= 0")
@@ -479,6 +498,27 @@ def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> No
         raise ConfigError(f"config key 'runner.actor_init': no such file {cfg.runner.actor_init!r}")
 
 
+def _init_student(runner: Any, path: str, device: str) -> dict:
+    """Load a checkpoint's student weights into the runner's student; return the checkpoint's ``infos``.
+
+    A single-head student initialises a multi-hypothesis one: every candidate starts as its head
+    (:func:`shield_nav.models.expand_single_head`), so training starts from the single-head policy.
+    """
+    from shield_nav.models import expand_single_head
+
+    student = runner.alg._raw_student
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    weights = ckpt.get("student_state_dict")
+    if weights is None:
+        raise ConfigError(f"config key 'runner.student_init': {path!r} holds no student (not a distillation run)")
+    single = not any(key.startswith("mlp.0.0.") for key in weights)
+    if getattr(student, "num_hypotheses", 1) > 1 and single:
+        weights = expand_single_head(weights, student)
+        print(f"[train] single-head student expanded to {student.num_hypotheses} hypotheses", flush=True)
+    student.load_state_dict(weights)
+    return ckpt.get("infos") or {}
+
+
 def _restore_levels(env: Any, levels: list[int] | None) -> None:
     """Put the envs back on the curriculum levels a checkpoint stored (same env count only)."""
     if levels is not None and hasattr(env, "set_curriculum_levels") and len(levels) == env.num_envs:
@@ -539,7 +579,7 @@ def train(
         runner.load(cfg.runner.teacher_checkpoint, map_location=device)  # actor weights -> teacher only
         print(f"[train] teacher loaded from {cfg.runner.teacher_checkpoint}", flush=True)
     if cfg.runner.class_name == "DistillationRunner" and resume is None and cfg.runner.student_init:
-        infos = runner.load(cfg.runner.student_init, load_cfg={"student": True}, map_location=device) or {}
+        infos = _init_student(runner, cfg.runner.student_init, device)
         print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
         _restore_levels(env, infos.get("curriculum_levels"))
     if cfg.runner.actor_init and resume is None:

@@ -12,7 +12,7 @@ from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
-from shield_nav.models import DepthEncoder, DepthGRUModel, export_policy
+from shield_nav.models import DepthEncoder, DepthGRUModel, HypothesisSelect, expand_single_head, export_policy
 
 S, C_DIM, A = 21, 40, 4  # state, critic and action sizes
 GROUPS = {"actor": ["depth", "state"], "critic": ["critic"]}
@@ -132,11 +132,12 @@ def _fill_storage(m, n, T, gen, dones_tn):
     return storage, means
 
 
-def test_batched_padded_chunks_equal_step_by_step():
+@pytest.mark.parametrize("k", [1, 3])
+def test_batched_padded_chunks_equal_step_by_step(k):
     # The PPO update path: storage.recurrent_mini_batch_generator splits the rollout at dones, pads the pieces,
     # and hands the hidden state recorded at each piece's start. The batch forward must equal the rollout.
     n, T = 4, 7
-    m, gen = make_actor(n=n)
+    m, gen = make_actor(n=n, num_hypotheses=k)
     dones = torch.zeros(T, n, dtype=torch.long)
     dones[2, 0] = dones[5, 0] = 1  # env 0: three pieces (3, 3, 1 steps)
     dones[0, 2] = 1  # env 2: a 1-step piece, then 6 steps
@@ -168,10 +169,19 @@ def test_batch_mode_gradient_flows_to_all_parts():
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters()), name
 
 
-def test_jit_and_onnx_exports_match_torch_actor(tmp_path):
+@pytest.mark.parametrize("k", [1, 3])
+def test_jit_and_onnx_exports_match_torch_actor(tmp_path, k):
     n, steps = 3, 5
-    m, gen = make_actor(n=n)
+    m, gen = make_actor(n=n, num_hypotheses=k)
+    if k > 1:  # input-dependent choices: amplify the score rows of the head's last layer and centre them
+        with torch.no_grad():
+            last = m.mlp[0][-1]
+            last.weight[-k:] *= 100.0
+            m(make_obs(64, gen))
+            last.bias[-k:] -= m.last_scores.mean(0)
+            m.reset()
     m.eval()
+    picked = set()
     paths = export_policy(m, str(tmp_path))
     jit = torch.jit.load(paths["jit"])
     sess = ort.InferenceSession(paths["onnx"], providers=["CPUExecutionProvider"])
@@ -184,6 +194,9 @@ def test_jit_and_onnx_exports_match_torch_actor(tmp_path):
         obs = make_obs(n, gen)
         with torch.no_grad():
             ref = m(obs)  # deterministic output (the mean)
+        if k > 1:  # the exports must pick the candidate the model picked, whichever it is
+            picked.update(m.last_scores.argmax(-1).tolist())
+            torch.testing.assert_close(ref, m.last_hypotheses[torch.arange(n), m.last_scores.argmax(-1)])
         a_jit, h_jit = jit(obs["state"], obs["depth"], h_jit)
         a_onnx, h_onnx = sess.run(None, {"obs": obs["state"].numpy(), "depth": obs["depth"].numpy(), "h_in": h_onnx})
         torch.testing.assert_close(a_jit, ref, rtol=1e-5, atol=1e-5)
@@ -196,6 +209,7 @@ def test_jit_and_onnx_exports_match_torch_actor(tmp_path):
             h_jit[:, 1] = 0.0
             h_onnx = h_onnx.copy()
             h_onnx[:, 1] = 0.0
+    assert k == 1 or len(picked) > 1  # more than one candidate was chosen over the 15 (env, step) pairs
 
 
 def test_one_real_ppo_update_changes_the_actor():
@@ -225,3 +239,51 @@ def test_one_real_ppo_update_changes_the_actor():
         assert not torch.equal(before[k], after[k]), k
     # PPO updated the state normaliser from the rollout (T * n samples).
     assert int(after["obs_normalizer.count"]) == int(before["obs_normalizer.count"]) + T * n
+
+
+def test_hypothesis_select_by_hand():
+    sel = HypothesisSelect(3, 2)
+    # Candidates (1, 2), (3, 4), (5, 6) with scores 0.1, 0.5, 0.2 -> (3, 4); equal scores -> the first candidate.
+    x = torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.1, 0.5, 0.2], [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.0, 0.0, 0.0]])
+    assert torch.equal(sel(x), torch.tensor([[3.0, 4.0], [1.0, 2.0]]))
+    hyps, scores = sel.split(x)
+    assert torch.equal(hyps[0], torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]))
+    assert torch.equal(scores[0], torch.tensor([0.1, 0.5, 0.2]))
+    # Leading dims (T, B) are kept: the batch mode of the recurrent update.
+    lead = torch.stack([x, x.flip(0)])  # (2, 2, 9)
+    assert torch.equal(sel(lead), torch.stack([sel(x), sel(x.flip(0))]))
+    with pytest.raises(ValueError, match="num_hypotheses must be >= 1"):
+        make_actor(num_hypotheses=0)
+
+
+def test_multi_hypothesis_head_parameter_count_by_hand():
+    single, _ = make_actor()
+    multi, _ = make_actor(num_hypotheses=3)
+    # Only the head's last layer grows: 32 -> A outputs becomes 32 -> 3 * A + 3 (candidates and scores).
+    extra = (32 * (3 * A + 3) + 3 * A + 3) - (32 * A + A)
+    assert sum(p.numel() for p in multi.parameters()) == sum(p.numel() for p in single.parameters()) + extra
+
+
+def test_expand_single_head_starts_every_candidate_as_the_single_head():
+    single, gen = make_actor(n=3, seed=4)
+    multi, _ = make_actor(n=3, seed=5, num_hypotheses=3)
+    multi.load_state_dict(expand_single_head(single.state_dict(), multi, noise_std=0.0))
+    single.eval()
+    multi.eval()
+    with torch.no_grad():
+        for _ in range(4):  # the GRU state follows too: same actions step after step
+            obs = make_obs(3, gen)
+            want = single(obs)
+            torch.testing.assert_close(multi(obs), want)
+            for c in range(3):
+                torch.testing.assert_close(multi.last_hypotheses[:, c], want)
+            assert torch.equal(multi.last_scores, torch.zeros(3, 3))
+    # With noise the candidates differ (the winner-takes-all loss needs to tell them apart), scores stay zero.
+    multi.load_state_dict(expand_single_head(single.state_dict(), multi, noise_std=0.02))
+    multi.reset()
+    with torch.no_grad():
+        multi(make_obs(3, gen))
+    h = multi.last_hypotheses
+    assert (h[:, 0] - h[:, 1]).abs().max() > 1e-3 and torch.equal(multi.last_scores, torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="not a single-head"):
+        expand_single_head(multi.state_dict(), multi)

@@ -1,0 +1,179 @@
+"""Multi-hypothesis DAgger: the winner-takes-all loss by hand, and rsl-rl's own Distillation / RolloutStorage learning
+a two-mode expert (a single head averages the modes, the candidates cover both), plus the config checks."""
+
+import math
+import os
+
+import pytest
+import torch
+from rsl_rl.algorithms import Distillation
+from rsl_rl.storage import RolloutStorage
+from tensordict import TensorDict
+
+from envs.config import ConfigError
+from shield_nav.distillation import MultiHypothesisDistillation, wta_loss
+from shield_nav.models import DepthGRUModel, ExpertTeacher
+from shield_nav.training import MULTI_HYPOTHESIS_ALGORITHM, load_train_config
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+S, A = 21, 4
+GROUPS = {"student": ["depth", "state"], "teacher": ["expert"]}
+SMALL = {"rnn_hidden_dim": 16, "hidden_dims": [32], "cnn_feature_dim": 16}
+GAUSS = {"class_name": "GaussianDistribution", "init_std": 0.1, "std_type": "scalar"}
+
+
+def test_wta_loss_by_hand():
+    # Two samples, K = 2 candidates of one action value each.
+    hyps = torch.tensor([[[0.0], [1.0]], [[0.0], [1.0]]])
+    scores = torch.tensor([[0.0, 0.0], [2.0, 0.0]])
+    target = torch.tensor([[0.9], [-0.2]])
+    loss, parts = wta_loss(hyps, scores, target, epsilon=0.1, selection_coef=0.5)
+    # Sample 1: errors 0.81, 0.01 -> winner 1: 0.9 * 0.01 + 0.1 * 0.81 = 0.09; CE([0, 0], 1) = ln 2; picks 0 (tie).
+    # Sample 2: errors 0.04, 1.44 -> winner 0: 0.9 * 0.04 + 0.1 * 1.44 = 0.18; CE([2, 0], 0) = ln(1 + e^-2).
+    wta = (0.09 + 0.18) / 2
+    ce = (math.log(2.0) + math.log1p(math.exp(-2.0))) / 2
+    assert parts["wta"].item() == pytest.approx(wta, abs=1e-6)
+    assert parts["selection"].item() == pytest.approx(ce, abs=1e-6)
+    assert loss.item() == pytest.approx(wta + 0.5 * ce, abs=1e-6)
+    assert parts["chosen"].item() == pytest.approx((0.81 + 0.04) / 2, abs=1e-6)
+    assert parts["accuracy"].item() == pytest.approx(0.5)
+    # epsilon 0: only the winners' errors count.
+    _, parts = wta_loss(hyps, scores, target, epsilon=0.0, selection_coef=0.0)
+    assert parts["wta"].item() == pytest.approx((0.01 + 0.04) / 2, abs=1e-6)
+
+
+def _obs(n, gen, label):
+    return TensorDict(
+        {"depth": torch.rand(n, 1, 60, 100, generator=gen), "state": torch.randn(n, S, generator=gen),
+         "expert": label.expand(n, A).clone()},
+        batch_size=[n],
+    )  # fmt: skip
+
+
+def _train_on_two_modes(k, iterations=15, n=8, steps=8, seed=0):
+    """DAgger against an expert that says +0.8 or -0.8 at random (nothing in the input tells which)."""
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+
+    def label():
+        return torch.where(torch.rand(n, 1, generator=gen) < 0.5, 0.8, -0.8)
+
+    obs = _obs(n, gen, label())
+    student = DepthGRUModel(obs, GROUPS, "student", A, distribution_cfg=GAUSS, num_hypotheses=k, **SMALL)
+    teacher = ExpertTeacher(obs, GROUPS, "teacher", A)
+    storage = RolloutStorage("distillation", n, steps, obs, [A])
+    common = {"num_learning_epochs": 2, "gradient_length": 8, "learning_rate": 5e-3}
+    if k > 1:
+        alg = MultiHypothesisDistillation(student, teacher, storage, wta_epsilon=0.05, selection_coef=0.1, **common)
+    else:
+        alg = Distillation(student, teacher, storage, **common)
+    alg.teacher_loaded = True
+    for _ in range(iterations):
+        with torch.inference_mode():
+            for _ in range(steps):
+                alg.act(obs)
+                obs = _obs(n, gen, label())
+                alg.process_env_step(obs, torch.zeros(n), torch.zeros(n, dtype=torch.long), {})
+        losses = alg.update()
+    return student, losses, obs
+
+
+def test_multi_hypothesis_distillation_covers_both_modes_a_single_head_averages():
+    single, losses1, obs = _train_on_two_modes(1)
+    with torch.no_grad():
+        single.eval()
+        mean = single(obs)
+    # MSE on +-0.8 labels: the single head learns their mean, ~0, with a loss near 0.64.
+    assert mean.abs().mean() < 0.25 and losses1["behavior"] > 0.5
+    assert ((mean - obs["expert"]) ** 2).mean() > 0.5
+
+    multi, losses, obs = _train_on_two_modes(2)
+    assert set(losses) == {"behavior", "wta", "selection", "chosen", "accuracy"}
+    assert all(math.isfinite(v) for v in losses.values())
+    with torch.no_grad():
+        multi.eval()
+        multi(obs)
+    cand = multi.last_hypotheses  # (n, 2, A)
+    hi, lo = cand.mean(-1).max(-1).values, cand.mean(-1).min(-1).values
+    # One candidate per mode, for every input; each label is near one of them. (The relaxed loss stays near
+    # eps * 1.6^2 = 0.128: the losing candidate sits near the other mode.)
+    assert (hi > 0.5).all() and (lo < -0.5).all()
+    nearest = ((cand - obs["expert"].unsqueeze(1)) ** 2).mean(-1).min(-1).values
+    assert nearest.mean() < 0.05
+    assert 0.1 < losses["wta"] < 0.2
+
+
+def test_multi_hypothesis_algorithm_rejects_a_single_head_and_bad_settings():
+    gen = torch.Generator().manual_seed(0)
+    obs = _obs(2, gen, torch.zeros(1, A))
+    teacher = ExpertTeacher(obs, GROUPS, "teacher", A)
+    storage = RolloutStorage("distillation", 2, 4, obs, [A])
+    single = DepthGRUModel(obs, GROUPS, "student", A, **SMALL)
+    with pytest.raises(ValueError, match="num_hypotheses >= 2"):
+        MultiHypothesisDistillation(single, teacher, storage)
+    multi = DepthGRUModel(obs, GROUPS, "student", A, num_hypotheses=2, **SMALL)
+    with pytest.raises(ValueError, match="wta_epsilon"):
+        MultiHypothesisDistillation(multi, teacher, storage, wta_epsilon=1.0)
+    with pytest.raises(ValueError, match="selection_coef"):
+        MultiHypothesisDistillation(multi, teacher, storage, selection_coef=-1.0)
+
+
+def test_config_errors_name_the_key():
+    path = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms_mh.yaml")
+    cfg = load_train_config(path)
+    assert cfg.runner.actor.num_hypotheses == 3 and cfg.runner.algorithm.class_name == MULTI_HYPOTHESIS_ALGORITHM
+    with pytest.raises(ConfigError, match="runner.algorithm.class_name"):
+        load_train_config(path, overrides=["runner.algorithm.class_name=Distillation"])
+    with pytest.raises(ConfigError, match="runner.algorithm.class_name"):
+        load_train_config(path, overrides=["runner.actor.num_hypotheses=1"])
+    with pytest.raises(ConfigError, match="runner.actor.num_hypotheses"):
+        load_train_config(path, overrides=["runner.actor.num_hypotheses=0"])
+    with pytest.raises(ConfigError, match="runner.algorithm.wta_epsilon"):
+        load_train_config(path, overrides=["runner.algorithm.wta_epsilon=1.5"])
+    with pytest.raises(ConfigError, match="runner.algorithm.selection_coef"):
+        load_train_config(path, overrides=["runner.algorithm.selection_coef=-0.1"])
+    quick = os.path.join(REPO, "configs", "train", "quick.yaml")
+    with pytest.raises(ConfigError, match="runner.actor.num_hypotheses"):
+        load_train_config(quick, overrides=["runner.actor.num_hypotheses=3"])
+
+
+def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_path):
+    """train.py: a single-head checkpoint initialises the K = 3 student, which trains, resumes and exports."""
+    import subprocess
+    import sys
+
+    import numpy as np
+    import onnxruntime as ort
+
+    from shield_nav.package import actor_from_checkpoint
+
+    root = str(tmp_path / "logs")
+    args = [sys.executable, "train.py", "--config", "configs/train/distill_oracle_shapes_3ms_mh.yaml",
+            "--num-envs", "4", "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
+            "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"]  # fmt: skip
+    res = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "single-head student expanded to 3 hypotheses" in res.stdout
+    (run,) = os.listdir(os.path.join(root, "shield_nav"))
+    run_dir = os.path.join(root, "shield_nav", run)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(run_dir)
+    acc.Reload()
+    assert {"Loss/behavior", "Loss/chosen", "Loss/accuracy"} <= set(acc.Tags()["scalars"])
+    ckpt_path = os.path.join(run_dir, "model_0.pt")
+    res = subprocess.run([sys.executable, "train.py", "--resume", ckpt_path, "--max-iterations", "2"], cwd=REPO,
+                         capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "continuing at iteration 1" in res.stdout
+    model, _, _ = actor_from_checkpoint(os.path.join(run_dir, "model_1.pt"))
+    assert model.num_hypotheses == 3
+    # The ONNX export flies the best-scored candidate, as the torch model does.
+    sess = ort.InferenceSession(os.path.join(run_dir, "exported", "policy.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    state = rng.normal(size=(5, S)).astype(np.float32)
+    depth = rng.uniform(0, 1, (5, 1, 60, 100)).astype(np.float32)
+    act, _ = sess.run(None, {"obs": state, "depth": depth, "h_in": np.zeros((1, 5, 128), np.float32)})
+    with torch.no_grad():
+        ref = model(TensorDict({"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)}, batch_size=[5]))
+    np.testing.assert_allclose(act, ref.numpy(), atol=1e-5)

@@ -104,6 +104,15 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
                                          "oracle_distilled_shapes"),  # fmt: skip
     "oracle_distilled_shapes_shield": RowConfig("Oracle-DAgger student, all-shapes training + shield", "policy",
                                                 "oracle_distilled_shapes", shield=True),  # fmt: skip
+    "oracle_distilled_shapes_3ms": RowConfig("Oracle-DAgger student, all-shapes, trained at 3 m/s (depth)",
+                                             "policy", "oracle_distilled_shapes_3ms"),  # fmt: skip
+    "oracle_distilled_shapes_3ms_shield": RowConfig("Oracle-DAgger student, all-shapes, trained at 3 m/s + shield",
+                                                    "policy", "oracle_distilled_shapes_3ms", shield=True),  # fmt: skip
+    "oracle_distilled_shapes_3ms_mh": RowConfig("Multi-hypothesis student, all-shapes, trained at 3 m/s (depth)",
+                                                "policy", "oracle_distilled_shapes_3ms_mh"),  # fmt: skip
+    "oracle_distilled_shapes_3ms_mh_shield": RowConfig(
+        "Multi-hypothesis student, all-shapes, trained at 3 m/s + shield", "policy", "oracle_distilled_shapes_3ms_mh",
+        shield=True),  # fmt: skip
     "distance_finetuned": RowConfig("Distance (oracle DAgger + PPO)", "policy", "distance_finetuned"),
     "dijkstra_finetuned": RowConfig("Dijkstra (oracle DAgger + PPO)", "policy", "dijkstra_finetuned"),
     "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
@@ -149,7 +158,8 @@ class EvalConfig:
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
                       "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
                       "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "oracle_distilled_shapes",
-                      "distance_finetuned", "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
+                      "oracle_distilled_shapes_3ms", "oracle_distilled_shapes_3ms_mh", "distance_finetuned",
+                      "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

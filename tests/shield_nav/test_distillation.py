@@ -4,6 +4,7 @@ a two-mode expert (a single head averages the modes, the candidates cover both),
 import math
 import os
 
+import numpy as np
 import pytest
 import torch
 from rsl_rl.algorithms import Distillation
@@ -142,7 +143,6 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
     import subprocess
     import sys
 
-    import numpy as np
     import onnxruntime as ort
 
     from shield_nav.package import actor_from_checkpoint
@@ -177,3 +177,46 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
     with torch.no_grad():
         ref = model(TensorDict({"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)}, batch_size=[5]))
     np.testing.assert_allclose(act, ref.numpy(), atol=1e-5)
+
+
+def test_imitation_gap_metrics_by_hand():
+    from shield_nav.imitation import gap_metrics
+
+    # Four samples. Roll (dim 1): the expert turns hard on samples 0-2 (|a| > 0.3): the student turns the other way
+    # on sample 0, by less than half on sample 1, fully on sample 2.
+    expert = np.zeros((4, 4))
+    student = np.zeros((4, 4))
+    expert[:, 1] = [0.5, -0.6, 0.4, 0.1]
+    student[:, 1] = [-0.1, -0.2, 0.4, 0.1]
+    expert[:, 0] = [0.0, 0.2, 0.0, 0.2]  # thrust: student constant 0 -> error 0.04 on two samples
+    res = gap_metrics(student, expert)
+    roll = res["per_dim"]["roll"]
+    assert roll["mse"] == pytest.approx((0.36 + 0.16 + 0 + 0) / 4)
+    assert roll["hard_turn_share"] == pytest.approx(0.75)
+    assert roll["wrong_sign"] == pytest.approx(1 / 3) and roll["weak"] == pytest.approx(1 / 3)
+    assert roll["wrong_sign_mse_share"] == pytest.approx(0.36 / 0.52)
+    assert res["per_dim"]["thrust"]["mse"] == pytest.approx(0.02)
+    assert res["per_dim"]["thrust"]["expert_var"] == pytest.approx(0.01)
+    assert res["per_dim"]["thrust"]["bias"] == pytest.approx(-0.1)
+    assert math.isnan(res["per_dim"]["thrust"]["corr"])  # a constant student has no correlation
+    assert res["mse"] == pytest.approx((0.52 + 0.08) / 16)
+    with pytest.raises(ValueError, match="finite"):
+        gap_metrics(student, expert * np.nan)
+
+
+def test_imitation_cli_on_the_committed_student():
+    import json
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/oracle_distilled_shapes",
+                          "--steps", "20", "--num-envs", "4", "--level", "2", "--json"],
+                         cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["samples"] == 80 and out["level"] == 2 and out["speed"] == 3.0
+    per = out["per_dim"]
+    assert out["mse"] == pytest.approx(np.mean([per[k]["mse"] for k in per]))
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/oracle_distilled_shapes",
+                          "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr

@@ -1,0 +1,149 @@
+"""How closely does a depth student imitate its expert, and how does it miss? Per-dimension imitation metrics.
+
+``python -m shield_nav.imitation checkpoints/oracle_distilled_shapes [--speed 3] [--level 8] [--steps 400] [--json]``
+
+flies the student's own policy on its training scene family (the DAgger state distribution; training seeds only,
+no evaluation scene is touched) at one target speed and curriculum level. It labels every visited state with the
+expert the checkpoint was distilled from (``runner.expert``), and reports, per action dimension (thrust, roll,
+pitch, yaw):
+
+* ``mse``: the behaviour-cloning error, and ``expert_var``, the variance of the labels. ``1 - mse / expert_var``
+  is the share of the expert's action variance the student explains.
+* ``corr``: the correlation between the two actions. ``std_ratio`` is the student's action std over the expert's;
+  below 1, the student is more timid than its expert.
+* For roll and yaw, where the expert turns hard (``|a| > 0.3``):
+  * ``wrong_sign``: how often the student turns the other way;
+  * ``weak``: how often it turns the same way by less than half;
+  * ``wrong_sign_mse_share``: the share of that dimension's error that comes from the wrong-sign samples.
+
+A large wrong-sign share means the student and its expert chose different sides around obstacles. Averaging the
+two sides is the failure a multi-hypothesis head addresses (:mod:`shield_nav.distillation`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import numpy as np
+
+ACTION_NAMES = ("thrust", "roll", "pitch", "yaw")
+HARD_TURN = 0.3
+"""``|expert action| > HARD_TURN`` counts as a hard turn (normalised action units)."""
+
+
+def gap_metrics(student: np.ndarray, expert: np.ndarray) -> dict:
+    """Imitation metrics of student actions against expert labels, both ``(..., 4)`` (see the module docstring)."""
+    s = np.asarray(student, dtype=np.float64).reshape(-1, 4)
+    e = np.asarray(expert, dtype=np.float64).reshape(-1, 4)
+    if s.shape != e.shape or len(s) < 2:
+        raise ValueError(f"need matching (..., 4) arrays with >= 2 samples, got {student.shape} and {expert.shape}")
+    if not (np.isfinite(s).all() and np.isfinite(e).all()):
+        raise ValueError("student and expert actions must be finite")
+    err = (s - e) ** 2
+    out: dict = {"samples": len(s), "mse": float(err.mean()), "per_dim": {}}
+    for k, name in enumerate(ACTION_NAMES):
+        sd_s, sd_e = s[:, k].std(), e[:, k].std()
+        row = {
+            "mse": float(err[:, k].mean()),
+            "expert_var": float(sd_e**2),
+            "bias": float((s[:, k] - e[:, k]).mean()),
+            "corr": float(np.corrcoef(s[:, k], e[:, k])[0, 1]) if sd_s > 0 and sd_e > 0 else float("nan"),
+            "std_ratio": float(sd_s / sd_e) if sd_e > 0 else float("nan"),
+        }
+        if name in ("roll", "yaw"):
+            hard = np.abs(e[:, k]) > HARD_TURN
+            same = np.sign(s[:, k]) == np.sign(e[:, k])
+            wrong = hard & ~same
+            weak = hard & same & (np.abs(s[:, k]) < 0.5 * np.abs(e[:, k]))
+            n_hard = max(int(hard.sum()), 1)
+            row.update(
+                hard_turn_share=float(hard.mean()),
+                wrong_sign=float(wrong.sum() / n_hard),
+                weak=float(weak.sum() / n_hard),
+                wrong_sign_mse_share=float(err[wrong, k].sum() / max(err[:, k].sum(), 1e-12)),
+            )
+        out["per_dim"][name] = row
+    return out
+
+
+def measure(
+    ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num_envs: int = 32, seed: int = 0
+) -> dict:
+    """Fly the student of ``ckpt`` ``steps`` steps in ``num_envs`` envs of its training family: :func:`gap_metrics`."""
+    import torch
+
+    from shield_nav.package import actor_from_checkpoint
+    from shield_nav.training import make_env
+
+    path = os.path.join(ckpt, "model.pt") if os.path.isdir(ckpt) else ckpt
+    model, cfg, meta = actor_from_checkpoint(path)
+    if model is None:
+        raise ValueError(f"{path}: not a depth student")
+    if not cfg.runner.expert.kind:
+        raise ValueError(f"{path}: the checkpoint was not distilled from a scripted expert (runner.expert.kind)")
+    if not 0 <= level < len(cfg.env.scenes.indices):
+        raise ValueError(f"level must be in [0, {len(cfg.env.scenes.indices)}), got {level}")
+    cfg.env.num_envs = num_envs
+    cfg.env.episode.target_speeds = [float(speed)]
+    cfg.env.episode.speed_range = []
+    cfg.env.seed = seed  # starts, goals and randomization
+    env = make_env(cfg)
+    env.set_curriculum_levels([level] * num_envs)
+    obs = env.get_observations()
+    student, expert = [], []
+    with torch.no_grad():
+        for _ in range(steps):
+            act = model(obs)
+            student.append(act.numpy().copy())
+            expert.append(obs["expert"].numpy().copy())
+            obs, _, dones, _ = env.step(act)
+            model.reset(dones)
+    out = gap_metrics(np.array(student), np.array(expert))
+    out.update(checkpoint=path, iteration=meta["iter"], speed=speed, level=level, steps=steps, num_envs=num_envs)
+    return out
+
+
+def format_table(res: dict) -> str:
+    """Markdown table of :func:`gap_metrics` output."""
+    lines = ["| action | MSE | expert var | explained | corr | std ratio | hard turns | wrong sign | weak |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for name, r in res["per_dim"].items():
+        expl = 1.0 - r["mse"] / r["expert_var"] if r["expert_var"] > 0 else float("nan")
+        extra = [f"{100 * r[k]:.0f} %" for k in ("hard_turn_share", "wrong_sign", "weak")] if "weak" in r else [""] * 3
+        lines.append(f"| {name} | {r['mse']:.4f} | {r['expert_var']:.4f} | {100 * expl:.0f} % | {r['corr']:.2f} | "
+                     f"{r['std_ratio']:.2f} | " + " | ".join(extra) + " |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point."""
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.imitation", description=__doc__.split("\n")[0])
+    ap.add_argument("checkpoint", help="checkpoint folder (checkpoints/<name>) or model_*.pt of a DAgger student")
+    ap.add_argument("--speed", type=float, default=3.0, help="target speed [m/s] (default 3)")
+    ap.add_argument("--level", type=int, default=8, help="curriculum level = training scene index (default 8)")
+    ap.add_argument("--steps", type=int, default=400, help="policy steps of 10 ms (default 400)")
+    ap.add_argument("--num-envs", type=int, default=32, help="parallel envs (default 32)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", action="store_true", help="print one JSON line instead of a table")
+    args = ap.parse_args(argv)
+    if not (os.path.isfile(args.checkpoint) or os.path.isfile(os.path.join(args.checkpoint, "model.pt"))):
+        ap.error(f"no checkpoint at {args.checkpoint!r} (a checkpoints/<name> folder or a model_*.pt)")
+    if args.steps < 2 or args.num_envs < 1 or args.speed <= 0:
+        ap.error(f"need --steps >= 2, --num-envs >= 1 and --speed > 0, got {args.steps}, {args.num_envs}, {args.speed}")
+    try:
+        res = measure(args.checkpoint, args.speed, args.level, args.steps, args.num_envs, args.seed)
+    except ValueError as err:
+        ap.error(str(err))
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(f"{res['checkpoint']} (iteration {res['iteration']}), {res['speed']:g} m/s, level {res['level']}, "
+              f"{res['samples']} samples: MSE {res['mse']:.4f}")  # fmt: skip
+        print(format_table(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

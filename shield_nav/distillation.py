@@ -18,15 +18,24 @@ cross-entropy term (``selection_coef``) teaches the scores to pick the candidate
 Everything else (rollout storage, truncated BPTT, hidden states, optimizer, checkpoints) is rsl-rl's own
 ``Distillation``; only its loss function is replaced. Use it as
 ``runner.algorithm.class_name: "shield_nav.distillation:MultiHypothesisDistillation"``.
+
+Both students can also anneal the learning rate (:class:`ScheduledDistillation`): rsl-rl's ``Distillation`` keeps
+it constant, and with a constant 1e-3 the behaviour-cloning loss of a converged student stays as noisy as the
+rollouts it is fitted on (docs/training.md, "Learning-rate schedule").
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
 from rsl_rl.algorithms import Distillation
 
-__all__ = ["MultiHypothesisDistillation", "wta_loss"]
+__all__ = ["LR_SCHEDULES", "MultiHypothesisDistillation", "ScheduledDistillation", "scheduled_lr", "wta_loss"]
+
+LR_SCHEDULES = ("constant", "cosine")
+"""Learning-rate schedules of :class:`ScheduledDistillation`."""
 
 ELEMENTWISE_LOSSES = {"mse": F.mse_loss, "huber": F.huber_loss}
 
@@ -73,7 +82,87 @@ def wta_loss(
     return wta + selection_coef * selection, parts
 
 
-class MultiHypothesisDistillation(Distillation):
+def scheduled_lr(update: int, lr: float, schedule: str, final: float, iterations: int) -> float:
+    """Learning rate of the ``update``-th update (0-based).
+
+    ``constant``: ``lr``. ``cosine``: from ``lr`` at update 0 to ``final`` at update ``N = iterations``, then
+    ``final``: ``final + (lr - final) (1 + cos(pi u / N)) / 2``.
+    """
+    if schedule not in LR_SCHEDULES:
+        raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {schedule!r}")
+    if schedule == "constant":
+        return lr
+    u = min(max(update, 0), iterations)
+    return final + (lr - final) * 0.5 * (1.0 + math.cos(math.pi * u / iterations))
+
+
+class ScheduledDistillation(Distillation):
+    """rsl-rl ``Distillation`` with a learning-rate schedule (:func:`scheduled_lr`) over its updates.
+
+    The update count is saved in the checkpoint (``num_updates``), so a resumed run continues the schedule; a
+    warm start (``runner.student_init``) starts it afresh. The runner logs the rate as ``Loss/learning_rate``.
+    Use it as ``runner.algorithm.class_name: "shield_nav.distillation:ScheduledDistillation"``.
+    """
+
+    def __init__(
+        self,
+        student: torch.nn.Module,
+        teacher: torch.nn.Module,
+        storage: object,
+        learning_rate: float = 1e-3,
+        lr_schedule: str = "constant",
+        lr_final: float = 1e-5,
+        lr_schedule_iterations: int = 1000,
+        **kwargs: object,
+    ) -> None:
+        """Build rsl-rl's ``Distillation`` and record the schedule.
+
+        Args:
+            student: The student model.
+            teacher: The teacher model.
+            storage: rsl-rl rollout storage.
+            learning_rate: Rate at the first update (rsl-rl's key).
+            lr_schedule: ``constant`` (rsl-rl's behaviour) or ``cosine``.
+            lr_final: Rate after ``lr_schedule_iterations`` updates (cosine), > 0 and <= ``learning_rate``.
+            lr_schedule_iterations: Updates (= iterations) the cosine takes, >= 1.
+            **kwargs: Passed to ``Distillation``.
+        """
+        if lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
+        if not 0.0 < lr_final <= learning_rate:
+            raise ValueError(f"lr_final must be in (0, learning_rate = {learning_rate}], got {lr_final}")
+        if lr_schedule_iterations < 1:
+            raise ValueError(f"lr_schedule_iterations must be >= 1, got {lr_schedule_iterations}")
+        super().__init__(student, teacher, storage, learning_rate=learning_rate, **kwargs)
+        self.lr_schedule = lr_schedule
+        self.lr_initial = float(learning_rate)
+        self.lr_final = float(lr_final)
+        self.lr_schedule_iterations = int(lr_schedule_iterations)
+
+    def update(self) -> dict[str, float]:
+        """Set this update's rate (``self.learning_rate``, which the runner logs), then rsl-rl's update."""
+        self.learning_rate = scheduled_lr(
+            self.num_updates, self.lr_initial, self.lr_schedule, self.lr_final, self.lr_schedule_iterations
+        )
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.learning_rate
+        return super().update()
+
+    def save(self) -> dict:
+        """rsl-rl's checkpoint dict plus the update count (the schedule's position)."""
+        out = super().save()
+        out["num_updates"] = self.num_updates
+        return out
+
+    def load(self, loaded_dict: dict, load_cfg: dict | None, strict: bool) -> bool:
+        """rsl-rl's load; a resumed run (``iteration`` loaded) also continues the schedule."""
+        load_iteration = super().load(loaded_dict, load_cfg, strict)
+        if load_iteration:
+            self.num_updates = int(loaded_dict.get("num_updates", 0))
+        return load_iteration
+
+
+class MultiHypothesisDistillation(ScheduledDistillation):
     """rsl-rl ``Distillation`` whose behaviour loss is :func:`wta_loss` over the student's candidates.
 
     The student must be a ``DepthGRUModel`` with ``num_hypotheses >= 2``. ``update()`` returns rsl-rl's
@@ -100,7 +189,7 @@ class MultiHypothesisDistillation(Distillation):
             wta_epsilon: Relaxation of the winner-takes-all loss, in [0, 1).
             selection_coef: Weight of the score cross-entropy, >= 0.
             loss_type: Per-element loss of each candidate, ``mse`` or ``huber``.
-            **kwargs: Passed to ``Distillation``.
+            **kwargs: Passed to :class:`ScheduledDistillation` (the learning-rate schedule) and ``Distillation``.
         """
         k = int(getattr(student, "num_hypotheses", 1))
         if k < 2:

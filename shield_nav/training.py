@@ -159,10 +159,21 @@ class AlgorithmConfig:
     """Multi-hypothesis distillation only: share of the loss spread over the losing candidates, in [0, 1)."""
     selection_coef: float = 0.1
     """Multi-hypothesis distillation only: weight of the cross-entropy that trains the candidate scores."""
+    lr_schedule: str = "constant"
+    """Distillation only: ``constant`` (rsl-rl's) or ``cosine`` from ``learning_rate`` to ``lr_final`` over
+    ``lr_schedule_iterations`` updates; ``cosine`` needs ``shield_nav.distillation:ScheduledDistillation`` (single
+    head) or ``MultiHypothesisDistillation``."""
+    lr_final: float = 1.0e-5
+    """Distillation with ``lr_schedule: cosine`` only: the rate the cosine ends at."""
+    lr_schedule_iterations: int = 0
+    """Distillation with ``lr_schedule: cosine`` only: iterations the cosine takes; 0 = the run's
+    ``max_iterations``."""
 
 
 MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
 """``runner.algorithm.class_name`` of a student with ``actor.num_hypotheses > 1``."""
+SCHEDULED_ALGORITHM = "shield_nav.distillation:ScheduledDistillation"
+"""``runner.algorithm.class_name`` of a single-head student with a learning-rate schedule."""
 
 
 def _default_expert_params() -> BaselineConfig:
@@ -280,14 +291,27 @@ class TrainConfig:
         )
         distill = r.class_name == "DistillationRunner"
         multi = r.actor.num_hypotheses > 1
-        algo = (MULTI_HYPOTHESIS_ALGORITHM if multi else "Distillation") if distill else "PPO"
+        algos = ("PPO",)
+        if distill:
+            algos = (MULTI_HYPOTHESIS_ALGORITHM,) if multi else ("Distillation", SCHEDULED_ALGORITHM)
         got = r.algorithm.class_name
         require(r.actor.num_hypotheses >= 1, f"{prefix}runner.actor.num_hypotheses", "must be >= 1")
         require(distill or not multi, f"{prefix}runner.actor.num_hypotheses",
                 "> 1 only with runner.class_name DistillationRunner")  # fmt: skip
-        require(got == algo, f"{prefix}runner.algorithm.class_name",
-                f"must be {algo!r} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
+        require(got in algos, f"{prefix}runner.algorithm.class_name",
+                f"must be one of {algos} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
                 f"{r.actor.num_hypotheses}, got {got!r}")  # fmt: skip
+        require(r.algorithm.lr_schedule in ("constant", "cosine"), f"{prefix}runner.algorithm.lr_schedule",
+                f"must be 'constant' or 'cosine', got {r.algorithm.lr_schedule!r}")  # fmt: skip
+        require(r.algorithm.lr_schedule == "constant" or got in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM),
+                f"{prefix}runner.algorithm.lr_schedule",
+                f"'cosine' needs runner.algorithm.class_name {SCHEDULED_ALGORITHM!r} or {MULTI_HYPOTHESIS_ALGORITHM!r}"
+                f", got {got!r}")  # fmt: skip
+        require(0.0 < r.algorithm.lr_final <= r.algorithm.learning_rate, f"{prefix}runner.algorithm.lr_final",
+                f"must be in (0, runner.algorithm.learning_rate = {r.algorithm.learning_rate}], "
+                f"got {r.algorithm.lr_final}")  # fmt: skip
+        require(r.algorithm.lr_schedule_iterations >= 0, f"{prefix}runner.algorithm.lr_schedule_iterations",
+                "must be >= 0 (0 = max_iterations)")  # fmt: skip
         require(0.0 <= r.algorithm.wta_epsilon < 1.0, f"{prefix}runner.algorithm.wta_epsilon", "must be in [0, 1)")
         require(r.algorithm.selection_coef >= 0.0, f"{prefix}runner.algorithm.selection_coef", "must be >= 0")
         require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
@@ -354,6 +378,8 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
         d["student"] = d.pop("actor")
         d["teacher"] = teacher
         d.pop("critic")
+    if d["algorithm"]["lr_schedule_iterations"] == 0:
+        d["algorithm"]["lr_schedule_iterations"] = cfg.max_iterations
     for key in ("actor", "critic", "student", "teacher", "algorithm"):
         if key in d:
             d[key] = _accepted(d[key]["class_name"], d[key])
@@ -704,7 +730,11 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
     if args.config is None:
         raise ConfigError("--config is required (or --resume)")
-    return load_train_config(files=args.config, overrides=overrides)
+    cfg = load_train_config(files=args.config, overrides=overrides)
+    if cfg.runner.algorithm.lr_schedule_iterations == 0:
+        # Frozen into the stored config, so a resume that extends --max-iterations keeps the schedule it started.
+        cfg.runner.algorithm.lr_schedule_iterations = cfg.max_iterations
+    return cfg
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -12,9 +12,9 @@ from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from envs.config import ConfigError
-from shield_nav.distillation import MultiHypothesisDistillation, wta_loss
+from shield_nav.distillation import MultiHypothesisDistillation, ScheduledDistillation, scheduled_lr, wta_loss
 from shield_nav.models import DepthGRUModel, ExpertTeacher
-from shield_nav.training import MULTI_HYPOTHESIS_ALGORITHM, load_train_config
+from shield_nav.training import MULTI_HYPOTHESIS_ALGORITHM, SCHEDULED_ALGORITHM, load_train_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 S, A = 21, 4
@@ -119,6 +119,59 @@ def test_multi_hypothesis_algorithm_rejects_a_single_head_and_bad_settings():
         MultiHypothesisDistillation(multi, teacher, storage, selection_coef=-1.0)
 
 
+def test_scheduled_lr_by_hand():
+    assert scheduled_lr(7, 1e-3, "constant", 1e-5, 10) == 1e-3
+    # cosine: lr_final + (lr - lr_final) (1 + cos(pi u / N)) / 2, N = 10
+    assert scheduled_lr(0, 1e-3, "cosine", 1e-5, 10) == pytest.approx(1e-3)
+    assert scheduled_lr(5, 1e-3, "cosine", 1e-5, 10) == pytest.approx((1e-3 + 1e-5) / 2)
+    at_2 = 1e-5 + 0.99e-3 * (1 + math.cos(0.2 * math.pi)) / 2
+    assert scheduled_lr(2, 1e-3, "cosine", 1e-5, 10) == pytest.approx(at_2)
+    assert scheduled_lr(10, 1e-3, "cosine", 1e-5, 10) == pytest.approx(1e-5)
+    assert scheduled_lr(25, 1e-3, "cosine", 1e-5, 10) == pytest.approx(1e-5)  # held after the cosine
+    with pytest.raises(ValueError, match="lr_schedule"):
+        scheduled_lr(0, 1e-3, "linear", 1e-5, 10)
+
+
+def test_scheduled_distillation_sets_the_rate_and_a_resume_continues_it():
+    gen = torch.Generator().manual_seed(0)
+    n, steps = 4, 4
+    obs = _obs(n, gen, torch.zeros(1, A))
+
+    def build():
+        torch.manual_seed(0)
+        student = DepthGRUModel(obs, GROUPS, "student", A, distribution_cfg=GAUSS, **SMALL)
+        teacher = ExpertTeacher(obs, GROUPS, "teacher", A)
+        storage = RolloutStorage("distillation", n, steps, obs, [A])
+        alg = ScheduledDistillation(student, teacher, storage, learning_rate=1e-3, lr_schedule="cosine",
+                                    lr_final=1e-5, lr_schedule_iterations=4, gradient_length=4)  # fmt: skip
+        alg.teacher_loaded = True
+        return alg
+
+    def one_update(alg):
+        with torch.inference_mode():
+            for _ in range(steps):
+                alg.act(obs)
+                alg.process_env_step(obs, torch.zeros(n), torch.zeros(n, dtype=torch.long), {})
+        alg.update()
+        return alg.learning_rate, alg.optimizer.param_groups[0]["lr"]
+
+    expected = [1e-5 + 0.99e-3 * (1 + math.cos(math.pi * u / 4)) / 2 for u in range(6)]
+    alg = build()
+    for u in range(2):
+        logged, used = one_update(alg)
+        assert logged == pytest.approx(expected[u]) and used == pytest.approx(expected[u])
+    saved = alg.save()
+    assert saved["num_updates"] == 2
+    resumed = build()
+    assert resumed.load(saved, {"student": True, "optimizer": True, "iteration": True}, strict=True)
+    assert [one_update(resumed)[1] for _ in range(4)] == pytest.approx(expected[2:4] + [1e-5, 1e-5])
+    warm = build()  # weights only (a warm start): the schedule starts afresh
+    warm.load(saved, {"student": True}, strict=True)
+    assert one_update(warm)[1] == pytest.approx(1e-3)
+    with pytest.raises(ValueError, match="lr_final"):
+        ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=1e-4, lr_final=1e-3)
+
+
 def test_config_errors_name_the_key():
     path = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms_mh.yaml")
     cfg = load_train_config(path)
@@ -133,13 +186,24 @@ def test_config_errors_name_the_key():
         load_train_config(path, overrides=["runner.algorithm.wta_epsilon=1.5"])
     with pytest.raises(ConfigError, match="runner.algorithm.selection_coef"):
         load_train_config(path, overrides=["runner.algorithm.selection_coef=-0.1"])
+    with pytest.raises(ConfigError, match="runner.algorithm.lr_schedule"):
+        load_train_config(path, overrides=["runner.algorithm.lr_schedule=linear"])
+    with pytest.raises(ConfigError, match="runner.algorithm.lr_final"):
+        load_train_config(path, overrides=["runner.algorithm.lr_final=0.1"])
+    single = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms.yaml")
+    with pytest.raises(ConfigError, match="runner.algorithm.lr_schedule"):  # rsl-rl's Distillation has no schedule
+        load_train_config(single, overrides=["runner.algorithm.lr_schedule=cosine"])
+    cfg = load_train_config(single, overrides=["runner.algorithm.lr_schedule=cosine",
+                                               f"runner.algorithm.class_name={SCHEDULED_ALGORITHM}"])  # fmt: skip
+    assert cfg.runner.algorithm.lr_schedule == "cosine"
     quick = os.path.join(REPO, "configs", "train", "quick.yaml")
     with pytest.raises(ConfigError, match="runner.actor.num_hypotheses"):
         load_train_config(quick, overrides=["runner.actor.num_hypotheses=3"])
 
 
 def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_path):
-    """train.py: a single-head checkpoint initialises the K = 3 student, which trains, resumes and exports."""
+    """train.py: a single-head checkpoint initialises the K = 3 student, which trains, resumes (its cosine learning
+    rate included) and exports."""
     import subprocess
     import sys
 
@@ -148,7 +212,7 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
     from shield_nav.package import actor_from_checkpoint
 
     root = str(tmp_path / "logs")
-    args = [sys.executable, "train.py", "--config", "configs/train/distill_oracle_shapes_3ms_mh.yaml",
+    args = [sys.executable, "train.py", "--config", "configs/train/distill_oracle_shapes_3ms_mh_cosine.yaml",
             "--num-envs", "4", "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
             "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"]  # fmt: skip
     res = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=240)
@@ -166,7 +230,14 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
                          capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     assert "continuing at iteration 1" in res.stdout
-    model, _, _ = actor_from_checkpoint(os.path.join(run_dir, "model_1.pt"))
+    # The cosine spans the first invocation's --max-iterations (1), frozen in the stored config: iteration 0 runs at
+    # 1e-3 and the resumed iteration 1 at lr_final (it would restart at 1e-3 if the update count were lost).
+    model, cfg, _ = actor_from_checkpoint(os.path.join(run_dir, "model_1.pt"))
+    assert cfg.runner.algorithm.lr_schedule_iterations == 1
+    acc = EventAccumulator(run_dir)
+    acc.Reload()
+    rates = {e.step: e.value for e in acc.Scalars("Loss/learning_rate")}
+    assert rates[0] == pytest.approx(1e-3) and rates[1] == pytest.approx(1e-5)
     assert model.num_hypotheses == 3
     # The ONNX export flies the best-scored candidate, as the torch model does.
     sess = ort.InferenceSession(os.path.join(run_dir, "exported", "policy.onnx"), providers=["CPUExecutionProvider"])

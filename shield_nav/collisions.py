@@ -9,6 +9,14 @@ orientation of cylinders and capsules (``vertical`` within 18 deg of z, ``horizo
 plane, ``inclined`` otherwise), or the floor or ceiling of the flight volume. Nearest surfaces farther than
 :data:`MAX_HIT_DISTANCE` are ``unresolved`` (moving obstacles, which are not regenerated here). It tells apart
 failures of perception on obstacle kinds the training scenes never had from failures on familiar ones.
+
+``--bearing`` asks a second question: was the obstacle in front of the vehicle when it hit it? The **approach
+bearing** is the horizontal angle between the direction of travel (the last two recorded trajectory points) and the
+direction to the nearest surface point of the obstacle hit. Below half the camera's horizontal field of view
+(``--hfov``, default the camera's 87 deg) the obstacle was inside the view cone around the direction of travel: a
+failure to avoid what the camera showed. Above it, the vehicle clipped something beside it, which it could only
+have avoided by remembering it. The yaw is not recorded, so the cone is centred on the direction of travel, not on
+the camera axis. Floor and ceiling hits have no horizontal bearing and are left out.
 """
 
 from __future__ import annotations
@@ -18,9 +26,11 @@ import glob
 import json
 import os
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 
 import numpy as np
 
+from envs.camera.config import CameraConfig
 from envs.scenes import Primitive, Scene, make_scene
 from envs.scenes.sdf import primitive_sdf
 
@@ -40,12 +50,12 @@ def primitive_class(prim: Primitive) -> str:
     return prim.kind
 
 
-def classify_hit(scene: Scene, pos: np.ndarray) -> tuple[str, float]:
-    """The class of the surface nearest to ``pos`` (3,) in ``scene`` and its signed distance (m)."""
+def _nearest(scene: Scene, pos: np.ndarray) -> tuple[str, float, Primitive | None]:
+    """Class, signed distance and primitive (``None`` for the floor or ceiling) of the surface nearest to ``pos``."""
     p = np.asarray(pos, dtype=np.float64).reshape(1, 3)
     if not np.isfinite(p).all():
         raise ValueError(f"position must be finite, got {pos!r}")
-    best, dist = "unresolved", np.inf
+    best, dist, prim_best = "unresolved", np.inf, None
     if scene.floor:
         best, dist = "floor", float(p[0, 2] - scene.bounds_lo[2])
     if scene.ceiling and scene.bounds_hi[2] - p[0, 2] < dist:
@@ -53,34 +63,100 @@ def classify_hit(scene: Scene, pos: np.ndarray) -> tuple[str, float]:
     for prim in scene.primitives:
         d = float(primitive_sdf(prim, p)[0])
         if d < dist:
-            best, dist = primitive_class(prim), d
+            best, dist, prim_best = primitive_class(prim), d, prim
+    return best, dist, prim_best
+
+
+def classify_hit(scene: Scene, pos: np.ndarray) -> tuple[str, float]:
+    """The class of the surface nearest to ``pos`` (3,) in ``scene`` and its signed distance (m)."""
+    best, dist, _ = _nearest(scene, pos)
     return (best if dist <= MAX_HIT_DISTANCE else "unresolved"), dist
 
 
-def breakdown(
-    out_dir: str, rows: list[str] | None = None, speeds: list[float] | None = None
-) -> dict[tuple[str, float], Counter]:
-    """(row, speed) -> Counter of hit classes over the collided trials of an eval output folder."""
+def approach_bearing(scene: Scene, traj: np.ndarray) -> tuple[str, float | None]:
+    """Hit class and approach bearing (deg, in [0, 180]) of a crashed trajectory ``(T, >=3)``, ``T >= 2``.
+
+    The bearing is the horizontal angle between the last displacement ``traj[-1] - traj[-2]`` and the direction from
+    the last position to the nearest surface point (minus the primitive's SDF gradient, by central differences).
+    ``None`` for the floor, the ceiling, unresolved hits and a vehicle that did not move horizontally.
+    """
+    tr = np.asarray(traj, dtype=np.float64)
+    if tr.ndim != 2 or tr.shape[0] < 2 or tr.shape[1] < 3:
+        raise ValueError(f"need a trajectory of >= 2 points (T, >=3), got shape {tr.shape}")
+    pos = tr[-1, :3]
+    cls, dist, prim = _nearest(scene, pos)
+    if prim is None or dist > MAX_HIT_DISTANCE:
+        return (cls if dist <= MAX_HIT_DISTANCE else "unresolved"), None
+    h = 1e-5
+    grad = np.array([primitive_sdf(prim, np.stack([pos + h * e, pos - h * e]))[[0, 1]] @ [1.0, -1.0] / (2 * h)
+                     for e in np.eye(3)])  # fmt: skip
+    travel, to_surface = (tr[-1, :2] - tr[-2, :2]), -grad[:2]
+    nt, ns = np.linalg.norm(travel), np.linalg.norm(to_surface)
+    if nt < 1e-9 or ns < 1e-9:
+        return cls, None
+    return cls, float(np.degrees(np.arccos(np.clip(travel @ to_surface / (nt * ns), -1.0, 1.0))))
+
+
+def _crashes(
+    out_dir: str, rows: list[str] | None, speeds: list[float] | None
+) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray]]]:
+    """Per unit of an eval folder: ``(row, speed)``, its scene (``None`` without crashes), the crashed trajectories."""
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
     if not files:
         raise FileNotFoundError(f"no unit files under {os.path.join(out_dir, 'units')!r}: not an eval.py output")
-    out: dict[tuple[str, float], Counter] = defaultdict(Counter)
     for path in files:
         with open(path) as fh:
             unit = json.load(fh)
         if (rows and unit["row"] not in rows) or (speeds and float(unit["speed"]) not in speeds):
             continue
         hits = [t for t in unit["trials"] if t["outcome"] == "collision"]
-        key = (unit["row"], float(unit["speed"]))
-        out[key].update()  # rows without collisions still appear
-        if not hits:
-            continue
-        scene = make_scene(unit["family"], int(unit["scene"]))  # eval.py flies the family's default seed
         for t in hits:
             if not t.get("traj"):
                 raise ValueError(f"{path}: trial {t.get('trial')} has no trajectory (trajectory_every too large?)")
-            out[key][classify_hit(scene, np.asarray(t["traj"][-1][:3]))[0]] += 1
+        # eval.py flies the family's default seed
+        scene = make_scene(unit["family"], int(unit["scene"])) if hits else None
+        yield (unit["row"], float(unit["speed"])), scene, [np.asarray(t["traj"]) for t in hits]
+
+
+def breakdown(
+    out_dir: str, rows: list[str] | None = None, speeds: list[float] | None = None
+) -> dict[tuple[str, float], Counter]:
+    """(row, speed) -> Counter of hit classes over the collided trials of an eval output folder."""
+    out: dict[tuple[str, float], Counter] = defaultdict(Counter)
+    for key, scene, trajs in _crashes(out_dir, rows, speeds):
+        out[key].update()  # rows without collisions still appear
+        for tr in trajs:
+            out[key][classify_hit(scene, tr[-1, :3])[0]] += 1
     return dict(out)
+
+
+def bearings(
+    out_dir: str, rows: list[str] | None = None, speeds: list[float] | None = None, hfov_deg: float = 87.0
+) -> dict[tuple[str, float], dict]:
+    """(row, speed) -> approach bearings of its crashes (:func:`approach_bearing`) and their summary.
+
+    Each value holds ``n`` (crashes with a bearing), ``median_deg``, ``in_view`` (the share with a bearing below
+    ``hfov_deg / 2``) and ``bearings`` (class, degrees) per crash.
+    """
+    if not 0.0 < hfov_deg < 180.0:
+        raise ValueError(f"hfov_deg must be in (0, 180), got {hfov_deg}")
+    found: dict[tuple[str, float], list] = defaultdict(list)
+    for key, scene, trajs in _crashes(out_dir, rows, speeds):
+        found[key] += []
+        for tr in trajs:
+            cls, deg = approach_bearing(scene, tr)
+            if deg is not None:
+                found[key].append((cls, deg))
+    out = {}
+    for key, items in found.items():
+        deg = np.array([d for _, d in items])
+        out[key] = {
+            "n": len(items),
+            "median_deg": float(np.median(deg)) if len(deg) else float("nan"),
+            "in_view": float((deg < hfov_deg / 2).mean()) if len(deg) else float("nan"),
+            "bearings": items,
+        }
+    return out
 
 
 def format_table(result: dict[tuple[str, float], Counter]) -> str:
@@ -94,6 +170,20 @@ def format_table(result: dict[tuple[str, float], Counter]) -> str:
     return "\n".join(lines)
 
 
+def format_bearings(result: dict[tuple[str, float], dict], hfov_deg: float) -> str:
+    """Markdown table of :func:`bearings`: per (row, speed) the crashes, median bearing, in-view and beside shares."""
+    half = hfov_deg / 2
+    lines = [f"| row | speed | n | median bearing (deg) | in view (< {half:g} deg) | beside |",
+             "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for (row, speed), r in sorted(result.items()):
+        if r["n"]:
+            lines.append(f"| {row} | {speed:g} | {r['n']} | {r['median_deg']:.0f} | {100 * r['in_view']:.0f} % | "
+                         f"{100 * (1 - r['in_view']):.0f} % |")  # fmt: skip
+        else:
+            lines.append(f"| {row} | {speed:g} | 0 | - | - | - |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     """CLI entry point."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -101,12 +191,25 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rows", default="", help="comma-separated rows (default: all)")
     ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all)")
     ap.add_argument("--json", action="store_true", help="print one JSON line instead of the table")
+    ap.add_argument("--bearing", action="store_true", help="approach bearings (in view or beside) instead of classes")
+    ap.add_argument("--hfov", type=float, default=CameraConfig().hfov_deg,
+                    help="camera horizontal field of view, deg (default: the camera's)")  # fmt: skip
     a = ap.parse_args(argv)
+    if not 0.0 < a.hfov < 180.0:
+        ap.error(f"--hfov must be in (0, 180), got {a.hfov}")
     rows = [r for r in a.rows.split(",") if r] or None
     try:
         speeds = [float(s) for s in a.speeds.split(",") if s] or None
     except ValueError:
         ap.error(f"--speeds must be numbers, got {a.speeds!r}")
+    if a.bearing:
+        res = bearings(a.out_dir, rows, speeds, a.hfov)
+        if a.json:
+            print(json.dumps([{"row": r, "speed": sp, **{k: v[k] for k in ("n", "median_deg", "in_view")}}
+                              for (r, sp), v in sorted(res.items())]))  # fmt: skip
+        else:
+            print(format_bearings(res, a.hfov))
+        return
     result = breakdown(a.out_dir, rows, speeds)
     if a.json:
         print(

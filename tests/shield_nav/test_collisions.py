@@ -8,7 +8,16 @@ import pytest
 
 from envs.scenes import Box, Capsule, Cylinder, Scene, Sphere, make_scene
 from envs.scenes.sdf import union_sdf
-from shield_nav.collisions import breakdown, classify_hit, format_table, main, primitive_class
+from shield_nav.collisions import (
+    approach_bearing,
+    bearings,
+    breakdown,
+    classify_hit,
+    format_bearings,
+    format_table,
+    main,
+    primitive_class,
+)
 
 PRIMS = (
     Cylinder((10.0, 0.0, 0.0), (10.0, 0.0, 3.0), 0.3),  # vertical post
@@ -91,3 +100,54 @@ def test_breakdown_over_an_eval_folder_and_cli(tmp_path, capsys):
 def test_breakdown_rejects_a_folder_without_units(tmp_path):
     with pytest.raises(FileNotFoundError, match="not an eval.py output"):
         breakdown(str(tmp_path))
+
+
+@pytest.mark.parametrize(
+    ("last", "want"),
+    [
+        ((9.5, 0.0), 0.0),  # head-on into the post (axis at x = 10, y = 0, radius 0.3)
+        ((10.0, 0.49), 90.0),  # beside it: the surface is straight to the right of the travel direction
+        ((10.0 - 0.49 / math.sqrt(2), 0.49 / math.sqrt(2)), 45.0),  # towards its centre at 45 deg
+        ((10.0 - 0.49 / math.sqrt(2), -0.49 / math.sqrt(2)), 45.0),  # the other side: the angle is unsigned
+    ],
+)
+def test_approach_bearing_against_a_hand_placed_post(last, want):
+    scene = Scene(primitives=PRIMS)
+    traj = np.array([[last[0] - 0.3, last[1], 1.5, 3.0], [last[0], last[1], 1.5, 3.0]])  # travelling along +x
+    cls, deg = approach_bearing(scene, traj)
+    assert cls == "cylinder vertical" and deg == pytest.approx(want, abs=1e-3)
+
+
+def test_approach_bearing_has_no_angle_for_the_floor_or_a_hover_and_rejects_short_trajectories():
+    scene = Scene(primitives=PRIMS)
+    assert approach_bearing(scene, np.array([[60.0, 0.0, 0.3], [60.5, 0.0, 0.2]])) == ("floor", None)
+    assert approach_bearing(scene, np.array([[9.5, 0.0, 1.5], [9.5, 0.0, 1.5]])) == ("cylinder vertical", None)
+    with pytest.raises(ValueError, match="2 points"):
+        approach_bearing(scene, np.array([[9.5, 0.0, 1.5]]))
+
+
+def test_bearings_over_an_eval_folder_and_cli(tmp_path, capsys):
+    scene = make_scene("ablation", 0)
+    box = next(p for p in scene.primitives if p.kind == "box")
+    w, z = box.quat[0], box.quat[3]
+    yaw = 2.0 * math.atan2(z, w)
+    normal = np.array([math.cos(yaw), math.sin(yaw), 0.0])  # the box's +x face normal
+    hit = np.array(box.center) + (box.half[0] + 0.19) * normal
+    along = np.array([-normal[1], normal[0], 0.0])  # parallel to the face
+    head_on = [[*(hit + 0.5 * normal), 3.0], [*hit, 3.0]]  # flying into the face
+    grazing = [[*(hit - 0.5 * along), 3.0], [*hit, 3.0]]  # flying along it
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "collision", "traj": head_on},
+        {"trial": 1, "outcome": "collision", "traj": grazing},
+        {"trial": 2, "outcome": "success", "traj": grazing},
+    ])  # fmt: skip
+    res = bearings(str(tmp_path))
+    r = res[("r", 3.0)]
+    assert r["n"] == 2 and r["in_view"] == pytest.approx(0.5)
+    assert sorted(d for _, d in r["bearings"]) == pytest.approx([0.0, 90.0], abs=1e-3)
+    assert "| r | 3 | 2 | 45 | 50 % | 50 % |" in format_bearings(res, 87.0)
+    main([str(tmp_path), "--bearing", "--json", "--hfov", "60"])
+    (row,) = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert row["n"] == 2 and row["in_view"] == pytest.approx(0.5) and row["median_deg"] == pytest.approx(45.0, abs=1e-3)
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--bearing", "--hfov", "200"])

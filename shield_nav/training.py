@@ -680,7 +680,15 @@ def train(
 
         policy = runner.alg.get_policy()
         if isinstance(policy, DepthGRUModel):
-            paths = export_policy(policy, os.path.join(run_dir, "exported"))
+            try:
+                paths = export_policy(policy, os.path.join(run_dir, "exported"))
+            except Exception:
+                # The checkpoint is on disk. A known cause: TorchScript re-reads the model's source file, so editing
+                # shield_nav/models.py while a run trains can break the run's final export (not its weights).
+                print(f"[train] the export failed; model_{it}.pt is saved. Re-export it with: python -m "
+                      f"shield_nav.package {os.path.join(run_dir, f'model_{it}.pt')} --name <policy name>",
+                      file=sys.stderr, flush=True)  # fmt: skip
+                raise
             print(f"[train] exported {paths['jit']} and {paths['onnx']}", flush=True)
         else:  # a privileged teacher: not deployable (it reads the local ESDF map), so nothing is exported
             print(f"[train] not exported: the policy is a {type(policy).__name__}, not a DepthGRUModel", flush=True)

@@ -202,3 +202,22 @@ def test_distillation_inputs_fail_fast(tmp_path):
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.student_init=checkpoints/dijkstra_cbf/model.pt"])
     assert res.returncode == 2 and "runner.student_init" in res.stderr and "DistillationRunner" in res.stderr
     assert not os.path.exists(root)  # nothing was started
+
+
+def test_a_failed_export_keeps_the_checkpoint_and_says_how_to_re_export(tmp_path, monkeypatch, capsys):
+    import shield_nav.models
+    from shield_nav.training import load_train_config, train
+
+    def broken_export(*args, **kwargs):
+        raise RuntimeError("simulated export failure")
+
+    monkeypatch.setattr(shield_nav.models, "export_policy", broken_export)
+    small = ["env.num_envs=4", "max_iterations=1", f"log_root={tmp_path}", "runner.num_steps_per_env=8",
+             "runner.algorithm.num_mini_batches=2"]  # fmt: skip
+    cfg = load_train_config(os.path.join(REPO, "configs", "train", "quick.yaml"), overrides=small)
+    with pytest.raises(RuntimeError, match="simulated export failure"):
+        train(cfg)
+    run_dir = only_run_dir(str(tmp_path))
+    assert os.path.isfile(os.path.join(run_dir, "model_0.pt"))
+    err = capsys.readouterr().err
+    assert f"python -m shield_nav.package {os.path.join(run_dir, 'model_0.pt')}" in err

@@ -97,10 +97,19 @@ def scheduled_lr(update: int, lr: float, schedule: str, final: float, iterations
 
 
 class ScheduledDistillation(Distillation):
-    """rsl-rl ``Distillation`` with a learning-rate schedule (:func:`scheduled_lr`) over its updates.
+    """rsl-rl ``Distillation`` with a learning-rate schedule and optional dataset aggregation (replay).
 
-    The update count is saved in the checkpoint (``num_updates``), so a resumed run continues the schedule; a
-    warm start (``runner.student_init``) starts it afresh. The runner logs the rate as ``Loss/learning_rate``.
+    **Schedule** (:func:`scheduled_lr`): the update count is saved in the checkpoint (``num_updates``), so a resumed
+    run continues the schedule; a warm start (``runner.student_init``) starts it afresh. The runner logs the rate as
+    ``Loss/learning_rate``.
+
+    **Aggregation**: rsl-rl's DAgger fits each rollout once and drops it. With ``replay_rollouts = M > 0`` the last
+    ``M`` rollouts (observations, expert labels, dones and the student's hidden state at their start) are kept, and
+    each update also fits ``replay_passes`` of them drawn at random, closer to DAgger's aggregated dataset (Ross et
+    al. 2011). A replayed rollout starts from its recorded hidden state (computed by the student of its time, as
+    R2D2's stored-state replay) and is fitted with the same truncated BPTT. Its loss is logged as ``Loss/replay``.
+    The buffer is not checkpointed: a resumed run refills it.
+
     Use it as ``runner.algorithm.class_name: "shield_nav.distillation:ScheduledDistillation"``.
     """
 
@@ -113,9 +122,12 @@ class ScheduledDistillation(Distillation):
         lr_schedule: str = "constant",
         lr_final: float = 1e-5,
         lr_schedule_iterations: int = 1000,
+        replay_rollouts: int = 0,
+        replay_passes: int = 0,
+        seed: int = 0,
         **kwargs: object,
     ) -> None:
-        """Build rsl-rl's ``Distillation`` and record the schedule.
+        """Build rsl-rl's ``Distillation`` and record the schedule and the replay settings.
 
         Args:
             student: The student model.
@@ -125,6 +137,9 @@ class ScheduledDistillation(Distillation):
             lr_schedule: ``constant`` (rsl-rl's behaviour) or ``cosine``.
             lr_final: Rate after ``lr_schedule_iterations`` updates (cosine), > 0 and <= ``learning_rate``.
             lr_schedule_iterations: Updates (= iterations) the cosine takes, >= 1.
+            replay_rollouts: Past rollouts kept for replay, >= 0 (0: rsl-rl's behaviour).
+            replay_passes: Past rollouts fitted per update, in [0, ``replay_rollouts``]; 0 without replay.
+            seed: Seed of the draw of replayed rollouts.
             **kwargs: Passed to ``Distillation``.
         """
         if lr_schedule not in LR_SCHEDULES:
@@ -133,20 +148,80 @@ class ScheduledDistillation(Distillation):
             raise ValueError(f"lr_final must be in (0, learning_rate = {learning_rate}], got {lr_final}")
         if lr_schedule_iterations < 1:
             raise ValueError(f"lr_schedule_iterations must be >= 1, got {lr_schedule_iterations}")
+        if replay_rollouts < 0 or not 0 <= replay_passes <= replay_rollouts or (replay_rollouts > 0) != (
+            replay_passes > 0
+        ):
+            raise ValueError(
+                "need replay_rollouts >= 0 and 0 <= replay_passes <= replay_rollouts, both 0 or both > 0; got "
+                f"replay_rollouts={replay_rollouts}, replay_passes={replay_passes}"
+            )
         super().__init__(student, teacher, storage, learning_rate=learning_rate, **kwargs)
         self.lr_schedule = lr_schedule
         self.lr_initial = float(learning_rate)
         self.lr_final = float(lr_final)
         self.lr_schedule_iterations = int(lr_schedule_iterations)
+        self.replay_rollouts = int(replay_rollouts)
+        self.replay_passes = int(replay_passes)
+        self.replay_buffer: list[dict] = []
+        """The kept rollouts, oldest first: ``observations`` (T, N), ``labels`` (T, N, A), ``dones`` (T, N, 1) and
+        ``hidden`` (the student's hidden state at the rollout's start, or ``None`` for zeros)."""
+        self._replay_gen = torch.Generator().manual_seed(int(seed))
+        self._replaying = False
 
     def update(self) -> dict[str, float]:
-        """Set this update's rate (``self.learning_rate``, which the runner logs), then rsl-rl's update."""
+        """Set this update's rate, run rsl-rl's update on the new rollout, then fit ``replay_passes`` kept ones."""
         self.learning_rate = scheduled_lr(
             self.num_updates, self.lr_initial, self.lr_schedule, self.lr_final, self.lr_schedule_iterations
         )
         for group in self.optimizer.param_groups:
             group["lr"] = self.learning_rate
-        return super().update()
+        if not self.replay_rollouts:
+            return super().update()
+        new = {
+            "observations": self.storage.observations.clone(),
+            "labels": self.storage.privileged_actions.clone(),
+            "dones": self.storage.dones.clone(),
+            "hidden": _clone_hidden(self.last_hidden_states[0]),
+        }
+        past = self.replay_buffer
+        picks = torch.randperm(len(past), generator=self._replay_gen)[: self.replay_passes].tolist() if past else []
+        out = super().update()
+        h_after = _clone_hidden(self.student.get_hidden_state())  # the live rollout continues from here
+        losses = [self._fit_rollout(past[i]) for i in picks]
+        self.student.reset(hidden_state=h_after)
+        self.replay_buffer = (past + [new])[-self.replay_rollouts :]
+        if losses:
+            out["replay"] = sum(losses) / len(losses)
+        return out
+
+    def _fit_rollout(self, rollout: dict) -> float:
+        """One pass of truncated-BPTT behaviour cloning over a kept rollout; its mean loss."""
+        self._replaying = True
+        try:
+            self.student.reset(hidden_state=_clone_hidden(rollout["hidden"]))
+            self.student.detach_hidden_state()
+            obs, labels, dones = rollout["observations"], rollout["labels"], rollout["dones"]
+            loss, total, cnt = 0, 0.0, 0
+            for t in range(labels.shape[0]):
+                step_loss = self.loss_fn(self.student(obs[t]), labels[t])
+                loss = loss + step_loss
+                total += step_loss.item()
+                cnt += 1
+                if cnt % self.gradient_length == 0 or t == labels.shape[0] - 1:
+                    self.optimizer.zero_grad()
+                    loss.backward()
+                    if self.is_multi_gpu:
+                        self.reduce_parameters()
+                    if self.max_grad_norm:
+                        torch.nn.utils.clip_grad_norm_(self.student.parameters(), self.max_grad_norm)
+                    self.optimizer.step()
+                    self.student.detach_hidden_state()
+                    loss = 0
+                self.student.reset(dones[t].view(-1))
+                self.student.detach_hidden_state(dones[t].view(-1))
+            return total / max(cnt, 1)
+        finally:
+            self._replaying = False
 
     def save(self) -> dict:
         """rsl-rl's checkpoint dict plus the update count (the schedule's position)."""
@@ -160,6 +235,15 @@ class ScheduledDistillation(Distillation):
         if load_iteration:
             self.num_updates = int(loaded_dict.get("num_updates", 0))
         return load_iteration
+
+
+def _clone_hidden(h: object) -> object:
+    """A detached copy of a hidden state (a tensor, a tuple of tensors or ``None``)."""
+    if h is None:
+        return None
+    if isinstance(h, torch.Tensor):
+        return h.detach().clone()
+    return tuple(_clone_hidden(x) for x in h)
 
 
 class MultiHypothesisDistillation(ScheduledDistillation):
@@ -213,9 +297,10 @@ class MultiHypothesisDistillation(ScheduledDistillation):
             student.last_hypotheses, student.last_scores, target, self.wta_epsilon, self.selection_coef,
             self.element_loss,
         )  # fmt: skip
-        for name, value in parts.items():
-            self._parts[name] = self._parts.get(name, 0.0) + float(value)
-        self._count += 1
+        if not self._replaying:  # the logged parts describe the new rollout; replay is logged as Loss/replay
+            for name, value in parts.items():
+                self._parts[name] = self._parts.get(name, 0.0) + float(value)
+            self._count += 1
         return loss
 
     def update(self) -> dict[str, float]:

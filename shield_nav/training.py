@@ -168,6 +168,12 @@ class AlgorithmConfig:
     lr_schedule_iterations: int = 0
     """Distillation with ``lr_schedule: cosine`` only: iterations the cosine takes; 0 = the run's
     ``max_iterations``."""
+    replay_rollouts: int = 0
+    """Distillation only: past rollouts kept for replay (dataset aggregation); 0 = rsl-rl's fit-once DAgger. Needs
+    ``ScheduledDistillation`` or ``MultiHypothesisDistillation``; each costs ``num_envs x num_steps_per_env``
+    observations of memory (128 x 24 depth images = 74 MB)."""
+    replay_passes: int = 0
+    """Distillation with replay only: kept rollouts fitted per update (each costs about one learning epoch)."""
 
 
 MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
@@ -312,6 +318,12 @@ class TrainConfig:
                 f"got {r.algorithm.lr_final}")  # fmt: skip
         require(r.algorithm.lr_schedule_iterations >= 0, f"{prefix}runner.algorithm.lr_schedule_iterations",
                 "must be >= 0 (0 = max_iterations)")  # fmt: skip
+        ours = (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM)
+        rr, rp = r.algorithm.replay_rollouts, r.algorithm.replay_passes
+        require(rr == 0 or got in ours, f"{prefix}runner.algorithm.replay_rollouts",
+                f"> 0 needs runner.algorithm.class_name one of {ours}, got {got!r}")  # fmt: skip
+        require(rr >= 0 and 0 <= rp <= rr and (rr > 0) == (rp > 0), f"{prefix}runner.algorithm.replay_passes",
+                f"needs 0 <= replay_passes <= replay_rollouts, both 0 or both > 0; got {rp} and {rr}")  # fmt: skip
         require(0.0 <= r.algorithm.wta_epsilon < 1.0, f"{prefix}runner.algorithm.wta_epsilon", "must be in [0, 1)")
         require(r.algorithm.selection_coef >= 0.0, f"{prefix}runner.algorithm.selection_coef", "must be >= 0")
         require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
@@ -380,6 +392,8 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
         d.pop("critic")
     if d["algorithm"]["lr_schedule_iterations"] == 0:
         d["algorithm"]["lr_schedule_iterations"] = cfg.max_iterations
+    if d["algorithm"]["class_name"] in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM):
+        d["algorithm"]["seed"] = cfg.seed  # the draw of replayed rollouts
     for key in ("actor", "critic", "student", "teacher", "algorithm"):
         if key in d:
             d[key] = _accepted(d[key]["class_name"], d[key])

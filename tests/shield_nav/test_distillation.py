@@ -172,6 +172,70 @@ def test_scheduled_distillation_sets_the_rate_and_a_resume_continues_it():
         ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=1e-4, lr_final=1e-3)
 
 
+def _filled(alg, n, steps, gen, done_at=3):
+    """Collect ``steps`` transitions with fresh random observations; env 0 is done at step ``done_at``."""
+    obs = _obs(n, gen, torch.randn(1, A, generator=gen))
+    with torch.inference_mode():
+        for t in range(steps):
+            alg.act(obs)
+            obs = _obs(n, gen, torch.randn(1, A, generator=gen))
+            dones = torch.zeros(n, dtype=torch.long)
+            dones[0] = int(t == done_at)
+            alg.process_env_step(obs, torch.zeros(n), dones, {})
+
+
+def _pair(n, steps, **kwargs):
+    """A plain rsl-rl Distillation and a ScheduledDistillation(**kwargs) over identical students."""
+    gen = torch.Generator().manual_seed(1)
+    obs = _obs(n, gen, torch.zeros(1, A))
+    algs = []
+    for cls, extra in ((Distillation, {}), (ScheduledDistillation, kwargs)):
+        torch.manual_seed(0)
+        student = DepthGRUModel(obs, GROUPS, "student", A, distribution_cfg=GAUSS, **SMALL)
+        storage = RolloutStorage("distillation", n, steps, obs, [A])
+        alg = cls(student, ExpertTeacher(obs, GROUPS, "teacher", A), storage, num_learning_epochs=1,
+                  gradient_length=4, learning_rate=1e-3, **extra)  # fmt: skip
+        alg.teacher_loaded = True
+        algs.append(alg)
+    return algs
+
+
+def test_replaying_a_kept_rollout_is_one_epoch_of_rsl_rl_distillation():
+    """A replay pass does exactly what rsl-rl's own update does with one epoch over the same rollout."""
+    n, steps = 3, 8
+    ref, ours = _pair(n, steps, replay_rollouts=1, replay_passes=1)
+    _filled(ref, n, steps, torch.Generator().manual_seed(2))
+    rollout = {"observations": ref.storage.observations.clone(), "labels": ref.storage.privileged_actions.clone(),
+               "dones": ref.storage.dones.clone(), "hidden": None}  # fmt: skip
+    assert rollout["dones"].sum() == 1  # a reset inside the window
+    loss = ours._fit_rollout(rollout)
+    ref_loss = ref.update()["behavior"]
+    assert loss == pytest.approx(ref_loss, rel=1e-6)
+    for (name, p), q in zip(ref.student.named_parameters(), ours.student.parameters(), strict=True):
+        assert torch.allclose(p, q, atol=1e-7), name
+
+
+def test_replay_keeps_the_last_rollouts_fits_them_and_leaves_the_live_hidden_state_alone():
+    n, steps = 3, 8
+    plain, ours = _pair(n, steps, replay_rollouts=2, replay_passes=1)
+    for it in range(4):
+        for alg in (plain, ours):
+            _filled(alg, n, steps, torch.Generator().manual_seed(10 + it))
+        out_plain, out = plain.update(), ours.update()
+        assert len(ours.replay_buffer) == min(it + 1, 2)
+        assert ("replay" in out) == (it > 0) and math.isfinite(out.get("replay", 0.0))
+        if it == 1:  # identical weights until the first replay: the live hidden state must match
+            assert out["behavior"] == pytest.approx(out_plain["behavior"], rel=1e-6)
+            assert torch.allclose(ours.student.get_hidden_state(), plain.student.get_hidden_state(), atol=1e-7)
+            pairs = zip(plain.student.parameters(), ours.student.parameters(), strict=True)
+            assert any(not torch.equal(p, q) for p, q in pairs)  # the replay pass moved the weights
+    assert ours.replay_buffer[-1]["labels"].shape == (steps, n, A)
+    with pytest.raises(ValueError, match="replay_passes"):
+        ScheduledDistillation(ours.student, ours.teacher, ours.storage, replay_rollouts=2, replay_passes=3)
+    with pytest.raises(ValueError, match="replay_passes"):
+        ScheduledDistillation(ours.student, ours.teacher, ours.storage, replay_rollouts=2, replay_passes=0)
+
+
 def test_config_errors_name_the_key():
     path = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms_mh.yaml")
     cfg = load_train_config(path)
@@ -196,6 +260,10 @@ def test_config_errors_name_the_key():
     cfg = load_train_config(single, overrides=["runner.algorithm.lr_schedule=cosine",
                                                f"runner.algorithm.class_name={SCHEDULED_ALGORITHM}"])  # fmt: skip
     assert cfg.runner.algorithm.lr_schedule == "cosine"
+    with pytest.raises(ConfigError, match="runner.algorithm.replay_rollouts"):
+        load_train_config(single, overrides=["runner.algorithm.replay_rollouts=4", "runner.algorithm.replay_passes=1"])
+    with pytest.raises(ConfigError, match="runner.algorithm.replay_passes"):
+        load_train_config(path, overrides=["runner.algorithm.replay_rollouts=4", "runner.algorithm.replay_passes=5"])
     quick = os.path.join(REPO, "configs", "train", "quick.yaml")
     with pytest.raises(ConfigError, match="runner.actor.num_hypotheses"):
         load_train_config(quick, overrides=["runner.actor.num_hypotheses=3"])

@@ -1,0 +1,64 @@
+"""Paired comparison of two evaluated rows: matching by trial, the exact McNemar test by hand, refusals."""
+
+import json
+import math
+
+import pytest
+
+from shield_nav.paired import compare, main, mcnemar_exact, paired_outcomes
+
+
+def test_mcnemar_exact_by_hand():
+    assert mcnemar_exact(0, 0) == 1.0
+    assert mcnemar_exact(3, 0) == pytest.approx(2 * 0.5**3)  # 0.25
+    # 1 vs 5: 2 * (C(6,0) + C(6,1)) / 2^6 = 2 * 7 / 64
+    assert mcnemar_exact(1, 5) == pytest.approx(14 / 64) and mcnemar_exact(5, 1) == mcnemar_exact(1, 5)
+    assert mcnemar_exact(4, 4) == 1.0  # the two-sided tail is capped at 1
+    # 45 vs 120 (the 3 m/s single- vs multi-hypothesis students): the sum of the lower tail
+    tail = sum(math.comb(165, i) for i in range(46)) / 2.0**165
+    assert mcnemar_exact(45, 120) == pytest.approx(2 * tail) and 1e-9 < mcnemar_exact(45, 120) < 1e-8
+    with pytest.raises(ValueError, match=">= 0"):
+        mcnemar_exact(-1, 2)
+
+
+def _write(root, row, outcomes, speed=3.0, scene=0, seed_offset=0):
+    units = root / "units"
+    units.mkdir(parents=True, exist_ok=True)
+    trials = [{"trial": j, "seed": 100 + j + seed_offset, "start": [0.0, float(j), 1.5], "goal": [60.0, 0.0, 1.5],
+               "outcome": o} for j, o in enumerate(outcomes)]  # fmt: skip
+    unit = {"row": row, "family": "ablation", "scene": scene, "speed": speed, "trials": trials}
+    (units / f"{row}__ablation-{scene:02d}__v{speed:g}.json").write_text(json.dumps(unit))
+
+
+def test_compare_matches_trials_across_folders_and_counts_discordant_pairs(tmp_path, capsys):
+    s, c = "success", "collision"
+    _write(tmp_path / "a", "old", [s, s, c, c, c, s])
+    _write(tmp_path / "a", "old", [s, c], speed=5.0)
+    _write(tmp_path / "b", "new", [s, c, s, s, s, s, s])  # one more trial than A: unmatched, left out
+    res = compare(f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new")
+    # Pairs (A, B): (s,s) (s,c) (c,s) (c,s) (c,s) (s,s): A only 1, B only 3; the 5 m/s unit has no partner.
+    assert res["n"] == 6 and res["speeds"] == [3.0]
+    assert res["a_success"] == pytest.approx(3 / 6) and res["b_success"] == pytest.approx(5 / 6)
+    assert (res["a_only"], res["b_only"]) == (1, 3)
+    assert res["p_mcnemar"] == pytest.approx(2 * (1 + 4) / 16)
+    assert len(paired_outcomes(f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new", speeds=[3.0])) == 6
+    main([f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new", "--json"])
+    assert json.loads(capsys.readouterr().out.strip())["b_only"] == 3
+    main([f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new"])
+    assert "discordant: A only 1, B only 3; exact McNemar p = 0.62" in capsys.readouterr().out
+
+
+def test_compare_refuses_different_trials_unknown_rows_and_bad_specs(tmp_path):
+    _write(tmp_path / "a", "old", ["success"] * 3)
+    _write(tmp_path / "b", "new", ["success"] * 3, seed_offset=7)  # another eval --seed
+    with pytest.raises(ValueError, match="differs in 'seed'"):
+        compare(f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new")
+    with pytest.raises(ValueError, match="no trials of row 'nope'.*its rows: old"):
+        compare(f"{tmp_path / 'a'}:nope", f"{tmp_path / 'a'}:old")
+    with pytest.raises(ValueError, match="OUT_DIR:ROW"):
+        compare(str(tmp_path / "a"), f"{tmp_path / 'a'}:old")
+    with pytest.raises(FileNotFoundError, match="not an eval.py output"):
+        compare(f"{tmp_path}:old", f"{tmp_path / 'a'}:old")
+    with pytest.raises(SystemExit) as exc:
+        main([f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new"])
+    assert exc.value.code == 2

@@ -113,6 +113,12 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "oracle_distilled_shapes_3ms_mh_shield": RowConfig(
         "Multi-hypothesis student, all-shapes, trained at 3 m/s + shield", "policy", "oracle_distilled_shapes_3ms_mh",
         shield=True),  # fmt: skip
+    "oracle_distilled_shapes_3ms_mh_replay": RowConfig(
+        "Multi-hypothesis student, 3 m/s, cosine rate + replay (depth)", "policy",
+        "oracle_distilled_shapes_3ms_mh_replay"),  # fmt: skip
+    "oracle_distilled_shapes_3ms_mh_replay_shield": RowConfig(
+        "Multi-hypothesis student, 3 m/s, cosine rate + replay + shield", "policy",
+        "oracle_distilled_shapes_3ms_mh_replay", shield=True),  # fmt: skip
     "distance_finetuned": RowConfig("Distance (oracle DAgger + PPO)", "policy", "distance_finetuned"),
     "dijkstra_finetuned": RowConfig("Dijkstra (oracle DAgger + PPO)", "policy", "dijkstra_finetuned"),
     "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
@@ -158,7 +164,8 @@ class EvalConfig:
             for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
                       "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
                       "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "oracle_distilled_shapes",
-                      "oracle_distilled_shapes_3ms", "oracle_distilled_shapes_3ms_mh", "distance_finetuned",
+                      "oracle_distilled_shapes_3ms", "oracle_distilled_shapes_3ms_mh",
+                      "oracle_distilled_shapes_3ms_mh_replay", "distance_finetuned",
                       "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
         }
     )

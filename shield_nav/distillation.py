@@ -135,7 +135,7 @@ class ScheduledDistillation(Distillation):
             storage: rsl-rl rollout storage.
             learning_rate: Rate at the first update (rsl-rl's key).
             lr_schedule: ``constant`` (rsl-rl's behaviour) or ``cosine``.
-            lr_final: Rate after ``lr_schedule_iterations`` updates (cosine), > 0 and <= ``learning_rate``.
+            lr_final: Rate after ``lr_schedule_iterations`` updates (cosine only), > 0 and <= ``learning_rate``.
             lr_schedule_iterations: Updates (= iterations) the cosine takes, >= 1.
             replay_rollouts: Past rollouts kept for replay, >= 0 (0: rsl-rl's behaviour).
             replay_passes: Past rollouts fitted per update, in [0, ``replay_rollouts``]; 0 without replay.
@@ -144,7 +144,7 @@ class ScheduledDistillation(Distillation):
         """
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
-        if not 0.0 < lr_final <= learning_rate:
+        if lr_schedule != "constant" and not 0.0 < lr_final <= learning_rate:
             raise ValueError(f"lr_final must be in (0, learning_rate = {learning_rate}], got {lr_final}")
         if lr_schedule_iterations < 1:
             raise ValueError(f"lr_schedule_iterations must be >= 1, got {lr_schedule_iterations}")

@@ -313,7 +313,8 @@ class TrainConfig:
                 f"{prefix}runner.algorithm.lr_schedule",
                 f"'cosine' needs runner.algorithm.class_name {SCHEDULED_ALGORITHM!r} or {MULTI_HYPOTHESIS_ALGORITHM!r}"
                 f", got {got!r}")  # fmt: skip
-        require(0.0 < r.algorithm.lr_final <= r.algorithm.learning_rate, f"{prefix}runner.algorithm.lr_final",
+        require(r.algorithm.lr_schedule == "constant" or 0.0 < r.algorithm.lr_final <= r.algorithm.learning_rate,
+                f"{prefix}runner.algorithm.lr_final",
                 f"must be in (0, runner.algorithm.learning_rate = {r.algorithm.learning_rate}], "
                 f"got {r.algorithm.lr_final}")  # fmt: skip
         require(r.algorithm.lr_schedule_iterations >= 0, f"{prefix}runner.algorithm.lr_schedule_iterations",

@@ -169,7 +169,9 @@ def test_scheduled_distillation_sets_the_rate_and_a_resume_continues_it():
     warm.load(saved, {"student": True}, strict=True)
     assert one_update(warm)[1] == pytest.approx(1e-3)
     with pytest.raises(ValueError, match="lr_final"):
-        ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=1e-4, lr_final=1e-3)
+        ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=1e-4, lr_schedule="cosine",
+                              lr_final=1e-3)  # fmt: skip
+    ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=0.0)  # constant: lr_final unused
 
 
 def _filled(alg, n, steps, gen, done_at=3):
@@ -253,7 +255,9 @@ def test_config_errors_name_the_key():
     with pytest.raises(ConfigError, match="runner.algorithm.lr_schedule"):
         load_train_config(path, overrides=["runner.algorithm.lr_schedule=linear"])
     with pytest.raises(ConfigError, match="runner.algorithm.lr_final"):
-        load_train_config(path, overrides=["runner.algorithm.lr_final=0.1"])
+        load_train_config(path, overrides=["runner.algorithm.lr_final=0.1", "runner.algorithm.lr_schedule=cosine"])
+    # A constant rate ignores lr_final, even with learning_rate 0 (a frozen student).
+    assert load_train_config(path, overrides=["runner.algorithm.learning_rate=0.0"]).runner.algorithm.learning_rate == 0
     single = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms.yaml")
     with pytest.raises(ConfigError, match="runner.algorithm.lr_schedule"):  # rsl-rl's Distillation has no schedule
         load_train_config(single, overrides=["runner.algorithm.lr_schedule=cosine"])

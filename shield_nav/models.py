@@ -283,6 +283,14 @@ class DepthGRUModel(MLPModel):
             return self.distribution.sample()
         return self.distribution.deterministic_output(mean)
 
+    @property
+    def mean_head(self) -> nn.Module:
+        """The module whose output is the mean action ``(..., A)``, the distribution's input.
+
+        The MLP head, or with ``K > 1`` its candidate selection. Read by :class:`shield_nav.anchored.AnchoredPPO`.
+        """
+        return self.mlp if self.num_hypotheses == 1 else self.mlp[1]
+
     # ------------------------------------------------------------------------------------------------ forward
 
     def get_latent(

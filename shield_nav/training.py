@@ -174,12 +174,17 @@ class AlgorithmConfig:
     observations of memory (128 x 24 depth images = 74 MB)."""
     replay_passes: int = 0
     """Distillation with replay only: kept rollouts fitted per update (each costs about one learning epoch)."""
+    anchor_coef: float = 0.0
+    """``shield_nav.anchored:AnchoredPPO`` only: weight of ``mean((mu - mu_ref)^2)``, the squared distance of the
+    actor's mean action from the frozen ``runner.actor_init`` actor's on the same states (PPO fine-tuning)."""
 
 
 MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
 """``runner.algorithm.class_name`` of a student with ``actor.num_hypotheses > 1``."""
 SCHEDULED_ALGORITHM = "shield_nav.distillation:ScheduledDistillation"
 """``runner.algorithm.class_name`` of a single-head student with a learning-rate schedule."""
+ANCHORED_ALGORITHM = "shield_nav.anchored:AnchoredPPO"
+"""``runner.algorithm.class_name`` of PPO fine-tuning anchored to its ``runner.actor_init`` actor."""
 
 
 def _default_expert_params() -> BaselineConfig:
@@ -297,13 +302,20 @@ class TrainConfig:
         )
         distill = r.class_name == "DistillationRunner"
         multi = r.actor.num_hypotheses > 1
-        algos = ("PPO",)
+        algos = ("PPO", ANCHORED_ALGORITHM)
         if distill:
             algos = (MULTI_HYPOTHESIS_ALGORITHM,) if multi else ("Distillation", SCHEDULED_ALGORITHM)
         got = r.algorithm.class_name
         require(r.actor.num_hypotheses >= 1, f"{prefix}runner.actor.num_hypotheses", "must be >= 1")
-        require(distill or not multi, f"{prefix}runner.actor.num_hypotheses",
-                "> 1 only with runner.class_name DistillationRunner")  # fmt: skip
+        require(distill or not multi or r.actor_init, f"{prefix}runner.actor.num_hypotheses",
+                "> 1 only with DistillationRunner or PPO fine-tuning from runner.actor_init")  # fmt: skip
+        anchored = got == ANCHORED_ALGORITHM
+        require(r.algorithm.anchor_coef >= 0.0 and (anchored or r.algorithm.anchor_coef == 0.0),
+                f"{prefix}runner.algorithm.anchor_coef",
+                f"must be >= 0, and > 0 only with runner.algorithm.class_name {ANCHORED_ALGORITHM!r}; got "
+                f"{r.algorithm.anchor_coef} with {got!r}")  # fmt: skip
+        require(not anchored or r.actor_init, f"{prefix}runner.actor_init",
+                f"is required by {ANCHORED_ALGORITHM!r}: it is the actor the fine-tuning stays near")  # fmt: skip
         require(got in algos, f"{prefix}runner.algorithm.class_name",
                 f"must be one of {algos} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
                 f"{r.actor.num_hypotheses}, got {got!r}")  # fmt: skip
@@ -370,10 +382,19 @@ def _accepted(class_name: str, kwargs: dict) -> dict:
     """``kwargs`` restricted to what ``class_name``'s constructor takes (all of them if it takes ``**kwargs``)."""
     from rsl_rl.utils import resolve_callable
 
-    params = inspect.signature(resolve_callable(class_name).__init__).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+    # A subclass that forwards **kwargs to its parent (shield_nav.anchored.AnchoredPPO -> PPO) takes what the first
+    # class up its MRO without **kwargs takes; if every __init__ takes **kwargs, everything is passed on.
+    names: set[str] = set()
+    for klass in resolve_callable(class_name).__mro__:
+        if "__init__" not in vars(klass):
+            continue
+        params = inspect.signature(vars(klass)["__init__"]).parameters
+        names.update(params)
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            break
+    else:
         return kwargs
-    return {k: v for k, v in kwargs.items() if k in params or k == "class_name"}
+    return {k: v for k, v in kwargs.items() if k in names or k == "class_name"}
 
 
 def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:

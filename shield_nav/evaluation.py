@@ -124,6 +124,12 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
     "full_finetuned": RowConfig("Full (oracle DAgger + PPO) = Dijkstra + CBF + shield", "policy",
                                 "dijkstra_cbf_finetuned", shield=True),  # fmt: skip
+    "distance_finetuned_3ms": RowConfig("Distance (3 m/s student + anchored PPO)", "policy", "distance_finetuned_3ms"),
+    "dijkstra_finetuned_3ms": RowConfig("Dijkstra (3 m/s student + anchored PPO)", "policy", "dijkstra_finetuned_3ms"),
+    "dijkstra_cbf_finetuned_3ms": RowConfig("Dijkstra + CBF (3 m/s student + anchored PPO)", "policy",
+                                            "dijkstra_cbf_finetuned_3ms"),  # fmt: skip
+    "full_finetuned_3ms": RowConfig("Full (3 m/s student + anchored PPO) = Dijkstra + CBF + shield", "policy",
+                                    "dijkstra_cbf_finetuned_3ms", shield=True),  # fmt: skip
     "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
     "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
@@ -166,7 +172,8 @@ class EvalConfig:
                       "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "oracle_distilled_shapes",
                       "oracle_distilled_shapes_3ms", "oracle_distilled_shapes_3ms_mh",
                       "oracle_distilled_shapes_3ms_mh_replay", "distance_finetuned",
-                      "dijkstra_finetuned", "dijkstra_cbf_finetuned")  # fmt: skip
+                      "dijkstra_finetuned", "dijkstra_cbf_finetuned", "distance_finetuned_3ms",
+                      "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

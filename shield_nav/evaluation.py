@@ -125,6 +125,12 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "oracle_distilled_shapes_3ms_mh_restart_shield": RowConfig(
         "Multi-hypothesis student, 3 m/s, second cosine cycle + shield", "policy",
         "oracle_distilled_shapes_3ms_mh_restart", shield=True),  # fmt: skip
+    "oracle_distilled_shapes_3ms_mh_restart2": RowConfig(
+        "Multi-hypothesis student, 3 m/s, third cosine cycle (depth)", "policy",
+        "oracle_distilled_shapes_3ms_mh_restart2"),  # fmt: skip
+    "oracle_distilled_shapes_3ms_mh_restart2_shield": RowConfig(
+        "Multi-hypothesis student, 3 m/s, third cosine cycle + shield", "policy",
+        "oracle_distilled_shapes_3ms_mh_restart2", shield=True),  # fmt: skip
     "distance_finetuned": RowConfig("Distance (oracle DAgger + PPO)", "policy", "distance_finetuned"),
     "dijkstra_finetuned": RowConfig("Dijkstra (oracle DAgger + PPO)", "policy", "dijkstra_finetuned"),
     "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
@@ -178,7 +184,7 @@ class EvalConfig:
                       "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "oracle_distilled_shapes",
                       "oracle_distilled_shapes_3ms", "oracle_distilled_shapes_3ms_mh",
                       "oracle_distilled_shapes_3ms_mh_replay", "oracle_distilled_shapes_3ms_mh_restart",
-                      "distance_finetuned",
+                      "oracle_distilled_shapes_3ms_mh_restart2", "distance_finetuned",
                       "dijkstra_finetuned", "dijkstra_cbf_finetuned", "distance_finetuned_3ms",
                       "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms")  # fmt: skip
         }

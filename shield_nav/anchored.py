@@ -29,6 +29,13 @@ How it plugs into rsl-rl without copying ``PPO.update``:
   hand-written ``L_PPO + anchor`` step.
 
 Use it as ``runner.algorithm.class_name: "shield_nav.anchored:AnchoredPPO"`` with ``runner.algorithm.anchor_coef``.
+
+**Kickstarting from the oracle** (``anchor_target: expert``). The reference can instead be the scripted oracle's
+action on every visited state (the ``expert`` observation of oracle DAgger, ``runner.expert``): the term is then
+DAgger's behaviour-cloning loss added to PPO's, which is kickstarting with the oracle as the teacher (Schmitt et al.
+2018). A multi-hypothesis actor is held to the expert by the loss it was distilled with,
+:func:`shield_nav.distillation.wta_loss` over its candidates and scores, so that the term does not average its
+candidates into one; a single head by ``mean((mu - a_expert)^2)``.
 """
 
 from __future__ import annotations
@@ -43,10 +50,12 @@ from rsl_rl.utils import unpad_trajectories
 from tensordict import TensorDict
 from torch import nn
 
-__all__ = ["ANCHOR_KEY", "AnchoredPPO", "anchor_loss"]
+__all__ = ["ANCHOR_KEY", "ANCHOR_TARGETS", "AnchoredPPO", "anchor_loss"]
 
 ANCHOR_KEY = "anchor_mean"
 """Rollout-storage key of the reference actor's mean action (never an observation group of a model)."""
+ANCHOR_TARGETS = ("actor_init", "expert")
+"""What the actor is held near: its own starting weights, or the scripted expert's action (observation ``expert``)."""
 
 
 def anchor_loss(mean: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -69,20 +78,57 @@ class _AnchorGradient(torch.autograd.Function):
         return grad + ctx.coef * 2.0 * (x - reference) / x.numel(), None, None
 
 
+class _AddGradient(torch.autograd.Function):
+    """Identity in the forward pass; the backward adds a precomputed gradient ``g`` (the same shape as ``x``)."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(g)
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        (g,) = ctx.saved_tensors
+        return grad + g, None
+
+
 class AnchoredPPO(PPO):
-    """rsl-rl's ``PPO`` plus ``anchor_coef * mean((mu - mu_ref)^2)`` towards a frozen reference actor.
+    """rsl-rl's ``PPO`` plus ``anchor_coef`` times a distance to a reference actor or expert.
+
+    The reference is the frozen starting actor (``mean((mu - mu_ref)^2)``) or the scripted expert (DAgger's loss,
+    kickstarting).
 
     The actor must output the Gaussian's mean from its ``mlp`` head (rsl-rl's ``GaussianDistribution`` with a
     state-independent std; ``DepthGRUModel`` single- or multi-hypothesis). ``anchor_coef = 0`` is plain PPO.
     """
 
     def __init__(self, actor: nn.Module, critic: nn.Module, storage: RolloutStorage, anchor_coef: float = 1.0,
+                 anchor_target: str = "actor_init", wta_epsilon: float = 0.05, selection_coef: float = 0.1,
                  **kwargs: Any) -> None:  # fmt: skip
-        """``anchor_coef``: weight of the anchor term; the other arguments are rsl-rl ``PPO``'s."""
+        """Build rsl-rl's ``PPO`` (``kwargs``) with the anchor term.
+
+        Args:
+            actor: The actor (rsl-rl ``PPO``).
+            critic: The critic (rsl-rl ``PPO``).
+            storage: The rollout storage, with :data:`ANCHOR_KEY` (built by :meth:`construct_algorithm`).
+            anchor_coef: Weight of the anchor term (0: plain PPO).
+            anchor_target: ``actor_init`` (a frozen copy of the starting actor) or ``expert`` (the ``expert``
+                observation, kickstarting).
+            wta_epsilon: ``anchor_target: expert`` with a multi-hypothesis actor only: the relaxation of
+                :func:`shield_nav.distillation.wta_loss`, as in its distillation.
+            selection_coef: Likewise, the weight of its score cross-entropy.
+            **kwargs: rsl-rl ``PPO``'s other arguments.
+        """
         if not anchor_coef >= 0.0:  # also rejects NaN
             raise ValueError(f"AnchoredPPO: anchor_coef must be >= 0, got {anchor_coef}")
+        if anchor_target not in ANCHOR_TARGETS:
+            raise ValueError(f"AnchoredPPO: anchor_target must be one of {ANCHOR_TARGETS}, got {anchor_target!r}")
         super().__init__(actor, critic, storage, **kwargs)
         self.anchor_coef = float(anchor_coef)
+        self.anchor_target = anchor_target
+        self.wta_epsilon = float(wta_epsilon)
+        self.selection_coef = float(selection_coef)
+        self._multi = anchor_target == "expert" and int(getattr(self._raw_actor, "num_hypotheses", 1)) > 1
         self.anchor: nn.Module | None = None
         """The frozen reference actor (taken at the first ``act`` or restored by ``load``)."""
         self._reference: torch.Tensor | None = None  # the current mini-batch's reference means (update only)
@@ -112,11 +158,16 @@ class AnchoredPPO(PPO):
 
     def act(self, obs: TensorDict) -> torch.Tensor:
         """PPO's ``act``; the reference's mean action on the same observation is stored with the transition."""
-        if self.anchor is None:
+        if self.anchor_target == "expert":
+            if "expert" not in obs:
+                raise KeyError("AnchoredPPO(anchor_target='expert') needs the 'expert' observation: set runner.expert")
+            reference = obs["expert"].float()
+        elif self.anchor is None:
             self.set_anchor()
         actions = super().act(obs)
-        with torch.no_grad():
-            reference = self.anchor(obs)  # deterministic output: the mean
+        if self.anchor_target == "actor_init":
+            with torch.no_grad():
+                reference = self.anchor(obs)  # deterministic output: the mean
         stored = obs.clone(recurse=False)
         stored[ANCHOR_KEY] = reference
         self.transition.observations = stored
@@ -126,7 +177,7 @@ class AnchoredPPO(PPO):
                          extras: dict[str, torch.Tensor]) -> None:  # fmt: skip
         """PPO's ``process_env_step``; the reference's GRU state is reset with the actor's."""
         super().process_env_step(obs, rewards, dones, extras)
-        if self.anchor is not None:
+        if self.anchor is not None and self.anchor_target == "actor_init":
             self.anchor.reset(dones)
 
     # ------------------------------------------------------------------------------------------------ update
@@ -147,13 +198,37 @@ class AnchoredPPO(PPO):
         self._anchor_count += 1
         return _AnchorGradient.apply(output, reference, self.anchor_coef)
 
+    def _anchor_candidates(self, module: nn.Module, args: tuple, output: torch.Tensor) -> torch.Tensor:
+        """Forward hook on a multi-hypothesis actor's raw head: attach the WTA loss's gradient towards the expert.
+
+        The raw head's output holds the candidates and their scores, before the selection.
+        """
+        from shield_nav.distillation import wta_loss
+
+        reference = self._reference
+        select = self._raw_actor.mlp[1]
+        with torch.enable_grad():
+            raw = output.detach().requires_grad_(True)
+            hypotheses, scores = select.split(raw)
+            if reference is None or reference.shape != hypotheses.shape[:-2] + hypotheses.shape[-1:]:
+                got = None if reference is None else tuple(reference.shape)
+                raise RuntimeError(f"AnchoredPPO: expert actions {got} do not match the actor's candidates "
+                                   f"{tuple(hypotheses.shape)}")  # fmt: skip
+            loss, _ = wta_loss(hypotheses, scores, reference, self.wta_epsilon, self.selection_coef)
+            (g,) = torch.autograd.grad(loss, raw)
+        self._anchor_sum += float(loss.detach())
+        self._anchor_count += 1
+        return _AddGradient.apply(output, self.anchor_coef * g)
+
     def update(self) -> dict[str, float]:
         """PPO's update with the anchor term in every mini-batch; the loss dict gains ``anchor`` (its mean)."""
         self._anchor_sum, self._anchor_count = 0.0, 0
-        hooks = [
-            self._raw_actor.register_forward_pre_hook(self._capture_reference, with_kwargs=True),
-            getattr(self._raw_actor, "mean_head", self._raw_actor.mlp).register_forward_hook(self._anchor_head),
-        ]
+        hooks = [self._raw_actor.register_forward_pre_hook(self._capture_reference, with_kwargs=True)]
+        if self._multi:
+            hooks.append(self._raw_actor.mlp[0].register_forward_hook(self._anchor_candidates))
+        else:
+            head = getattr(self._raw_actor, "mean_head", self._raw_actor.mlp)
+            hooks.append(head.register_forward_hook(self._anchor_head))
         try:
             losses = super().update()
         finally:

@@ -40,6 +40,7 @@ from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, load_config, require, to_dict, to_yaml
 from envs.navigation import NavConfig
+from shield_nav.anchored import ANCHOR_TARGETS
 from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
 
 CHECKPOINT_FORMAT_VERSION = 1
@@ -156,9 +157,11 @@ class AlgorithmConfig:
     loss_type: str = "mse"
     """Distillation only: ``mse`` or ``huber`` between the student's mean action and the teacher's."""
     wta_epsilon: float = 0.05
-    """Multi-hypothesis distillation only: share of the loss spread over the losing candidates, in [0, 1)."""
+    """Multi-hypothesis distillation (and kickstarting, ``anchor_target: expert``) only: share of the loss spread over
+    the losing candidates, in [0, 1)."""
     selection_coef: float = 0.1
-    """Multi-hypothesis distillation only: weight of the cross-entropy that trains the candidate scores."""
+    """Multi-hypothesis distillation (and kickstarting) only: weight of the cross-entropy that trains the candidate
+    scores."""
     lr_schedule: str = "constant"
     """Distillation only: ``constant`` (rsl-rl's) or ``cosine`` from ``learning_rate`` to ``lr_final`` over
     ``lr_schedule_iterations`` updates; ``cosine`` needs ``shield_nav.distillation:ScheduledDistillation`` (single
@@ -175,8 +178,12 @@ class AlgorithmConfig:
     replay_passes: int = 0
     """Distillation with replay only: kept rollouts fitted per update (each costs about one learning epoch)."""
     anchor_coef: float = 0.0
-    """``shield_nav.anchored:AnchoredPPO`` only: weight of ``mean((mu - mu_ref)^2)``, the squared distance of the
-    actor's mean action from the frozen ``runner.actor_init`` actor's on the same states (PPO fine-tuning)."""
+    """``shield_nav.anchored:AnchoredPPO`` only: weight of the anchor term, the distance of the actor's mean action
+    from the reference's on the same states (PPO fine-tuning)."""
+    anchor_target: str = "actor_init"
+    """``shield_nav.anchored:AnchoredPPO`` only: the reference. ``actor_init``: the frozen ``runner.actor_init``
+    actor, ``mean((mu - mu_ref)^2)``. ``expert``: the scripted expert of ``runner.expert`` (kickstarting), DAgger's
+    loss (``wta_loss`` with ``wta_epsilon`` and ``selection_coef`` for a multi-hypothesis actor)."""
 
 
 MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
@@ -193,12 +200,13 @@ def _default_expert_params() -> BaselineConfig:
 
 @dataclass
 class ExpertConfig:
-    """Distillation from a scripted privileged expert instead of a trained teacher (oracle DAgger)."""
+    """A scripted privileged expert: the teacher of oracle DAgger, or the reference of kickstarting PPO."""
 
     kind: str = ""
     """``oracle``: the geodesic-descent oracle of :mod:`shield_nav.baselines` labels every state the student visits
     (with ``teacher.class_name: "shield_nav.models:ExpertTeacher"`` and ``obs_groups.teacher: [expert]``); no
-    ``teacher_checkpoint`` is needed. Empty: the trained teacher of ``teacher_checkpoint``."""
+    ``teacher_checkpoint`` is needed; with ``AnchoredPPO`` and ``algorithm.anchor_target: expert``, the actions
+    the PPO actor is held near. Empty: the trained teacher of ``teacher_checkpoint``."""
     params: BaselineConfig = field(default_factory=_default_expert_params)
     """The expert's parameters (:class:`shield_nav.baselines.BaselineConfig`; ``oracle.episode_goal`` defaults to
     true here: descend the field of the episode's goal point)."""
@@ -245,7 +253,8 @@ class RunnerConfig:
     critic learns the values of the loaded actor before its advantages move the policy (needs
     ``algorithm.schedule: fixed``: with a frozen actor the KL is 0 and the adaptive rule would raise the rate)."""
     expert: ExpertConfig = field(default_factory=ExpertConfig)
-    """Distillation only, optional: a scripted expert as the teacher (see :class:`ExpertConfig`)."""
+    """Optional: a scripted expert as the distillation teacher, or as the kickstarting reference of
+    ``AnchoredPPO`` (see :class:`ExpertConfig`)."""
     init_at_random_ep_len: bool = True
     """Start the first rollout at random episode times, to decorrelate the envs."""
     check_for_nan: bool = True
@@ -315,7 +324,12 @@ class TrainConfig:
                 f"must be >= 0, and > 0 only with runner.algorithm.class_name {ANCHORED_ALGORITHM!r}; got "
                 f"{r.algorithm.anchor_coef} with {got!r}")  # fmt: skip
         require(not anchored or r.actor_init, f"{prefix}runner.actor_init",
-                f"is required by {ANCHORED_ALGORITHM!r}: it is the actor the fine-tuning stays near")  # fmt: skip
+                f"is required by {ANCHORED_ALGORITHM!r}: it is the actor the fine-tuning starts from")  # fmt: skip
+        require(r.algorithm.anchor_target in ANCHOR_TARGETS, f"{prefix}runner.algorithm.anchor_target",
+                f"must be one of {ANCHOR_TARGETS}, got {r.algorithm.anchor_target!r}")  # fmt: skip
+        kickstart = anchored and r.algorithm.anchor_target == "expert"
+        require(not kickstart or r.expert.kind, f"{prefix}runner.expert.kind",
+                "must be set with runner.algorithm.anchor_target 'expert' (the expert the actor is held near)")
         require(got in algos, f"{prefix}runner.algorithm.class_name",
                 f"must be one of {algos} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
                 f"{r.actor.num_hypotheses}, got {got!r}")  # fmt: skip
@@ -355,10 +369,11 @@ class TrainConfig:
         if r.expert.kind:
             require(r.expert.kind in EXPERTS, f"{prefix}runner.expert.kind",
                     f"unknown expert {r.expert.kind!r}; known: {sorted(EXPERTS)}")  # fmt: skip
-            require(distill, f"{prefix}runner.expert.kind", "only with runner.class_name DistillationRunner")
-            require(r.obs_groups.get("teacher") == ["expert"], f"{prefix}runner.obs_groups.teacher",
+            require(distill or kickstart, f"{prefix}runner.expert.kind",
+                    "only with runner.class_name DistillationRunner, or AnchoredPPO with anchor_target 'expert'")
+            require(not distill or r.obs_groups.get("teacher") == ["expert"], f"{prefix}runner.obs_groups.teacher",
                     f"must be [expert] with runner.expert.kind {r.expert.kind!r}")  # fmt: skip
-            require(r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
+            require(not distill or r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
                     "must be 'shield_nav.models:ExpertTeacher' with a scripted expert")  # fmt: skip
         uses_teacher_obs = any("teacher" in groups for groups in r.obs_groups.values())
         require(not uses_teacher_obs or self.env.local_map.enabled, f"{prefix}env.local_map.enabled",

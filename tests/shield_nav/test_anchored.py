@@ -28,7 +28,7 @@ GAUSS = {"class_name": "GaussianDistribution", "init_std": 0.2}
 def _obs(n, gen):
     return TensorDict(
         {"depth": torch.rand(n, 1, 60, 100, generator=gen), "state": torch.randn(n, S, generator=gen),
-         "critic": torch.randn(n, 3, generator=gen)},
+         "critic": torch.randn(n, 3, generator=gen), "expert": 2 * torch.rand(n, A, generator=gen) - 1},
         batch_size=[n],
     )  # fmt: skip
 
@@ -47,7 +47,7 @@ def test_anchor_loss_and_its_gradient_by_hand():
     torch.testing.assert_close(g_hook, w + 0.7 * 2 * (x - r).detach() / x.numel())  # d/dx by hand
 
 
-def _algorithms(n, steps, coef, k=1):
+def _algorithms(n, steps, coef, k=1, **anchored):
     """rsl-rl's PPO and AnchoredPPO(coef) over identical actors; the anchor is the actor *before* a perturbation,
     so that the anchor term has a gradient. Plain SGD without clipping, so one step is ``-lr * gradient``."""
     gen = torch.Generator().manual_seed(1)
@@ -60,8 +60,10 @@ def _algorithms(n, steps, coef, k=1):
     ppo = PPO(copy.deepcopy(actor), copy.deepcopy(critic), RolloutStorage("rl", n, steps, obs, [A]), **kw)
     extended = obs.clone()
     extended[ANCHOR_KEY] = torch.zeros(n, A)
-    ours = AnchoredPPO(actor, critic, RolloutStorage("rl", n, steps, extended, [A]), anchor_coef=coef, **kw)
-    ours.set_anchor()
+    ours = AnchoredPPO(actor, critic, RolloutStorage("rl", n, steps, extended, [A]), anchor_coef=coef, **anchored,
+                       **kw)  # fmt: skip
+    if ours.anchor_target == "actor_init":
+        ours.set_anchor()
     with torch.no_grad():
         for a, b in zip(ours.actor.parameters(), ppo.actor.parameters(), strict=True):
             a.add_(0.05 * torch.randn(a.shape, generator=gen))
@@ -120,6 +122,61 @@ def test_anchored_update_is_the_ppo_step_plus_the_anchor_gradient(k):
         torch.testing.assert_close(q, expected, atol=1e-6, rtol=1e-5, msg=name)
 
 
+@pytest.mark.parametrize("k", [1, 3])
+def test_kickstarting_adds_the_gradient_of_the_distillation_loss_towards_the_expert(k):
+    """anchor_target 'expert': against rsl-rl's PPO on the same rollout, the weights differ by exactly
+    ``-lr * c * grad``, where the loss is the expert's distillation loss computed by hand on the pre-update actor:
+    the mean's squared error for one head, ``wta_loss`` over the candidates for K = 3 (not the selected mean's)."""
+    n, steps, coef, lr, eps, sel = 3, 8, 5.0, 0.1, 0.1, 0.3
+    ppo, ours = _algorithms(n, steps, coef, k, anchor_target="expert", wta_epsilon=eps, selection_coef=sel)
+    _rollout(ppo, n, steps)
+    _rollout(ours, n, steps)
+    observations, dones = ours.storage.observations.clone(), ours.storage.dones.clone()
+    torch.testing.assert_close(observations[ANCHOR_KEY], observations["expert"])  # the reference is the expert
+    before = copy.deepcopy(ours.actor)
+    before.reset()
+    outputs = []
+    for t in range(steps):
+        mean = before(observations[t])
+        outputs.append((mean, before.last_hypotheses, before.last_scores) if k > 1 else (mean,))
+        before.reset(dones[t].squeeze(-1))
+    target = observations["expert"]
+    if k == 1:
+        loss = (torch.stack([o[0] for o in outputs]) - target).pow(2).mean()
+    else:
+        hyps = torch.stack([o[1] for o in outputs])  # (T, N, K, A)
+        scores = torch.stack([o[2] for o in outputs])  # (T, N, K)
+        # wta_loss by hand: per sample the closest candidate gets 1 - eps, the others eps / (K - 1); plus sel x the
+        # cross-entropy of the scores against that candidate.
+        err = (hyps - target.unsqueeze(-2)).pow(2).mean(-1).reshape(-1, k)
+        winner = err.argmin(-1)
+        weights = torch.full_like(err, eps / (k - 1))
+        weights[torch.arange(len(winner)), winner] = 1 - eps
+        logp = torch.log_softmax(scores.reshape(-1, k), -1)
+        loss = (weights * err).sum(-1).mean() - sel * logp[torch.arange(len(winner)), winner].mean()
+    grads = torch.autograd.grad(coef * loss, list(before.parameters()), allow_unused=True)
+    ppo.update()
+    parts = ours.update()
+    assert parts["anchor"] == pytest.approx(loss.item(), rel=1e-5)
+    moved = 0
+    for (name, p), q, g in zip(ppo.actor.named_parameters(), ours.actor.parameters(), grads, strict=True):
+        expected = p if g is None else p - lr * g
+        torch.testing.assert_close(q, expected, atol=1e-6, rtol=1e-5, msg=name)
+        moved += int(g is not None and g.abs().max() > 1e-4)
+    assert moved >= 4  # the term reaches the encoder, the GRU and the head, not only the last layer
+    assert ours.anchor is None and "anchor_state_dict" not in ours.save()  # nothing frozen to keep
+
+
+def test_kickstarting_without_the_expert_observation_fails_by_name():
+    _, ours = _algorithms(3, 8, 1.0, anchor_target="expert")
+    obs = _obs(3, torch.Generator().manual_seed(0))
+    del obs["expert"]
+    with pytest.raises(KeyError, match="runner.expert"), torch.inference_mode():
+        ours.act(obs)
+    with pytest.raises(ValueError, match="anchor_target"):
+        _algorithms(3, 8, 1.0, anchor_target="teacher")
+
+
 def test_the_anchor_is_saved_and_restored_and_leaves_the_actor_alone():
     n, steps = 3, 8
     _, ours = _algorithms(n, steps, 1.0)
@@ -154,6 +211,15 @@ def test_config_checks_name_the_key():
         load_train_config("configs/train/dijkstra_cbf.yaml", ["runner.actor.num_hypotheses=3"])
     with pytest.raises(ValueError, match="anchor_coef"):
         _algorithms(3, 8, float("nan"))
+    kick = load_train_config("configs/train/kickstart_3ms_dijkstra_cbf.yaml")
+    assert kick.runner.algorithm.anchor_target == "expert" and kick.runner.expert.kind == "oracle"
+    assert rsl_rl_train_cfg(kick)["algorithm"]["anchor_target"] == "expert"
+    with pytest.raises(ConfigError, match="runner.algorithm.anchor_target"):
+        load("runner.algorithm.anchor_target=oracle")
+    with pytest.raises(ConfigError, match="runner.expert.kind"):
+        load("runner.algorithm.anchor_target=expert")  # no expert to be held near
+    with pytest.raises(ConfigError, match="runner.expert.kind"):
+        load("runner.expert.kind=oracle")  # an expert PPO would compute and ignore
 
 
 def test_train_cli_fine_tunes_the_committed_student_and_a_resume_keeps_its_anchor(tmp_path):
@@ -187,3 +253,31 @@ def test_train_cli_fine_tunes_the_committed_student_and_a_resume_keeps_its_ancho
     acc = EventAccumulator(run_dir)
     acc.Reload()
     assert sorted({e.step for e in acc.Scalars("Loss/anchor")}) == [0, 1, 2]
+
+
+def test_train_cli_kickstarts_the_committed_student_with_the_oracle(tmp_path):
+    """train.py with the shipped kickstarting config: the env adapter computes the oracle's labels, the actor
+    trains against them after the critic's warm-up, and tensorboard gets Loss/anchor (DAgger's loss, > 0)."""
+    root = str(tmp_path / "logs")
+    res = subprocess.run(
+        [sys.executable, "train.py", "--config", "configs/train/kickstart_3ms_dijkstra_cbf.yaml", "--max-iterations",
+         "2", "--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]",
+         "runner.algorithm.num_mini_batches=2", "runner.critic_warmup_iterations=1"],
+        cwd=REPO, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    (run_name,) = os.listdir(os.path.join(root, "shield_nav"))
+    run_dir = os.path.join(root, "shield_nav", run_name)
+    ckpt = torch.load(os.path.join(run_dir, "model_1.pt"), weights_only=False)
+    assert "anchor_state_dict" not in ckpt  # the reference is the oracle, not a frozen actor
+    start = torch.load("checkpoints/oracle_distilled_shapes_3ms_mh_restart2/model.pt", weights_only=False)
+    start = start.get("student_state_dict") or start["actor_state_dict"]
+    moved = [k for k, v in ckpt["actor_state_dict"].items() if "normalizer" not in k and not torch.equal(v, start[k])]
+    assert moved  # the second iteration (after the warm-up) moved the actor
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(run_dir)
+    acc.Reload()
+    anchor = acc.Scalars("Loss/anchor")
+    assert [e.step for e in anchor] == [0, 1] and all(0.0 < e.value < 10.0 for e in anchor)
+    assert os.path.isfile(os.path.join(run_dir, "exported", "policy.onnx"))

@@ -142,6 +142,14 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
                                             "dijkstra_cbf_finetuned_3ms"),  # fmt: skip
     "full_finetuned_3ms": RowConfig("Full (3 m/s student + anchored PPO) = Dijkstra + CBF + shield", "policy",
                                     "dijkstra_cbf_finetuned_3ms", shield=True),  # fmt: skip
+    "distance_kickstarted_3ms": RowConfig("Distance (3 m/s student + PPO kickstarted by the oracle)", "policy",
+                                          "distance_kickstarted_3ms"),  # fmt: skip
+    "dijkstra_kickstarted_3ms": RowConfig("Dijkstra (3 m/s student + PPO kickstarted by the oracle)", "policy",
+                                          "dijkstra_kickstarted_3ms"),  # fmt: skip
+    "dijkstra_cbf_kickstarted_3ms": RowConfig("Dijkstra + CBF (3 m/s student + PPO kickstarted by the oracle)",
+                                              "policy", "dijkstra_cbf_kickstarted_3ms"),  # fmt: skip
+    "full_kickstarted_3ms": RowConfig("Full (3 m/s student + PPO kickstarted by the oracle) = Dijkstra + CBF + shield",
+                                      "policy", "dijkstra_cbf_kickstarted_3ms", shield=True),  # fmt: skip
     "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
     "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
@@ -186,7 +194,8 @@ class EvalConfig:
                       "oracle_distilled_shapes_3ms_mh_replay", "oracle_distilled_shapes_3ms_mh_restart",
                       "oracle_distilled_shapes_3ms_mh_restart2", "distance_finetuned",
                       "dijkstra_finetuned", "dijkstra_cbf_finetuned", "distance_finetuned_3ms",
-                      "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms")  # fmt: skip
+                      "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms", "distance_kickstarted_3ms",
+                      "dijkstra_kickstarted_3ms", "dijkstra_cbf_kickstarted_3ms")  # fmt: skip
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

@@ -1,6 +1,6 @@
 """Is row B better than row A? A paired comparison of two evaluated rows over the same seeded trials.
 
-``python -m shield_nav.paired OUT_A:ROW_A OUT_B:ROW_B [--speeds 3] [--json]``, e.g.
+``python -m shield_nav.paired OUT_A:ROW_A OUT_B:ROW_B [OUT_A2:ROW_A2 OUT_B2:ROW_B2 ...] [--speeds 3] [--json]``, e.g.
 ``python -m shield_nav.paired eval_out/ablation:oracle_distilled eval_out/ablation:oracle_distilled_shield``
 
 Every ``eval.py`` row flies the same pinned trials (trial ``j`` of scene ``k`` at speed ``v`` has one seed, start and
@@ -13,6 +13,12 @@ seeds, starts or goals differ (different ``--seed`` or scenes), and reports:
 * the discordant pairs: ``a_only`` (A succeeded, B did not) and ``b_only``;
 * the exact two-sided McNemar test: under "A and B are equally good" each discordant pair is a fair coin, so
   ``p = min(1, 2 P(X <= min(a_only, b_only)))`` with ``X ~ Binomial(a_only + b_only, 1/2)``.
+
+Several pairs (``A1 B1 A2 B2 ...``) are replicates of one comparison, e.g. the same two training recipes run with
+two training seeds: each pair is reported on its own, then **pooled**, the discordant pairs of all replicates summed
+into one exact McNemar test. Under "A and B are equally good" every discordant pair is still a fair coin whichever
+replicate it comes from, so the pooled test is exact, and it folds the replicates' training noise into the
+comparison instead of resting on one training run.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import os
 
 from shield_nav.evaluation import wilson_interval
 
-__all__ = ["compare", "mcnemar_exact", "paired_outcomes"]
+__all__ = ["compare", "compare_pooled", "mcnemar_exact", "paired_outcomes"]
 
 
 def mcnemar_exact(a_only: int, b_only: int) -> float:
@@ -99,6 +105,24 @@ def compare(a: str, b: str, speeds: list[float] | None = None) -> dict:
     }  # fmt: skip
 
 
+def compare_pooled(specs: list[tuple[str, str]], speeds: list[float] | None = None) -> dict:
+    """:func:`compare` of every ``(a, b)`` pair, and the pooled counts and exact McNemar test over all of them."""
+    if not specs:
+        raise ValueError("no (A, B) pair to compare")
+    pairs = [compare(a, b, speeds) for a, b in specs]
+    n = sum(r["n"] for r in pairs)
+    sa = round(sum(r["a_success"] * r["n"] for r in pairs))
+    sb = round(sum(r["b_success"] * r["n"] for r in pairs))
+    a_only, b_only = sum(r["a_only"] for r in pairs), sum(r["b_only"] for r in pairs)
+    pooled = {
+        "n": n, "replicates": len(pairs),
+        "a_success": sa / n, "a_interval": list(wilson_interval(sa, n)),
+        "b_success": sb / n, "b_interval": list(wilson_interval(sb, n)),
+        "a_only": a_only, "b_only": b_only, "p_mcnemar": mcnemar_exact(a_only, b_only),
+    }  # fmt: skip
+    return {"pairs": pairs, "pooled": pooled}
+
+
 def format_report(res: dict) -> str:
     """Human-readable lines of :func:`compare`'s result."""
 
@@ -118,8 +142,9 @@ def format_report(res: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
     ap = argparse.ArgumentParser(prog="python -m shield_nav.paired", description=__doc__.split("\n")[0])
-    ap.add_argument("a", help="OUT_DIR:ROW, e.g. eval_out/ablation:oracle_distilled_shapes_3ms")
-    ap.add_argument("b", help="OUT_DIR:ROW")
+    ap.add_argument("specs", nargs="+", metavar="OUT_DIR:ROW",
+                    help="A then B, e.g. eval_out/ablation:oracle_distilled_shapes_3ms eval_out/ablation:oracle; "
+                         "more A B pairs (replicates, e.g. training seeds) are reported and pooled")  # fmt: skip
     ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all in common)")
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     args = ap.parse_args(argv)
@@ -127,11 +152,23 @@ def main(argv: list[str] | None = None) -> int:
         speeds = [float(s) for s in args.speeds.split(",") if s] or None
     except ValueError:
         ap.error(f"--speeds must be numbers, got {args.speeds!r}")
+    if len(args.specs) % 2:
+        ap.error(f"expected A B pairs of OUT_DIR:ROW, got an odd count ({len(args.specs)})")
+    specs = list(zip(args.specs[::2], args.specs[1::2], strict=True))
     try:
-        res = compare(args.a, args.b, speeds)
+        res = compare(*specs[0], speeds) if len(specs) == 1 else compare_pooled(specs, speeds)
     except (ValueError, FileNotFoundError) as err:
         ap.error(str(err))
-    print(json.dumps(res) if args.json else format_report(res))
+    if args.json:
+        print(json.dumps(res))
+    elif len(specs) == 1:
+        print(format_report(res))
+    else:
+        print("\n\n".join(format_report(r) for r in res["pairs"]))
+        p = res["pooled"]
+        print(f"\npooled over {p['replicates']} replicates, {p['n']} paired trials: "
+              f"A {100 * p['a_success']:.1f} %, B {100 * p['b_success']:.1f} %; discordant: A only {p['a_only']}, "
+              f"B only {p['b_only']}; exact McNemar p = {p['p_mcnemar']:.2g}")  # fmt: skip
     return 0
 
 

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from shield_nav.paired import compare, main, mcnemar_exact, paired_outcomes
+from shield_nav.paired import compare, compare_pooled, main, mcnemar_exact, paired_outcomes
 
 
 def test_mcnemar_exact_by_hand():
@@ -61,4 +61,30 @@ def test_compare_refuses_different_trials_unknown_rows_and_bad_specs(tmp_path):
         compare(f"{tmp_path}:old", f"{tmp_path / 'a'}:old")
     with pytest.raises(SystemExit) as exc:
         main([f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new"])
+    assert exc.value.code == 2
+
+
+def test_replicates_are_reported_and_pooled(tmp_path, capsys):
+    """Two replicates (e.g. training seeds) of the same comparison: each on its own, and the discordant pairs summed
+    into one exact test."""
+    s, c = "success", "collision"
+    _write(tmp_path / "seed1", "a", [s, s, c, c, c, s])  # vs b: A only 1, B only 3 (as above)
+    _write(tmp_path / "seed1", "b", [s, c, s, s, s, s])
+    _write(tmp_path / "seed2", "a", [c, c, s, c])  # vs b: A only 1 (trial 2), B only 2 (trials 0, 1)
+    _write(tmp_path / "seed2", "b", [s, s, c, c])
+    specs = [(f"{tmp_path / d}:a", f"{tmp_path / d}:b") for d in ("seed1", "seed2")]
+    res = compare_pooled(specs)
+    assert [(r["a_only"], r["b_only"]) for r in res["pairs"]] == [(1, 3), (1, 2)]
+    pooled = res["pooled"]
+    assert (pooled["n"], pooled["replicates"], pooled["a_only"], pooled["b_only"]) == (10, 2, 2, 5)
+    assert pooled["a_success"] == pytest.approx((3 + 1) / 10) and pooled["b_success"] == pytest.approx((5 + 2) / 10)
+    # 2 vs 5 discordant: 2 * (C(7,0) + C(7,1) + C(7,2)) / 2^7 = 2 * 29 / 128
+    assert pooled["p_mcnemar"] == pytest.approx(58 / 128)
+    main([*specs[0], *specs[1]])
+    out = capsys.readouterr().out
+    assert "pooled over 2 replicates, 10 paired trials: A 40.0 %, B 70.0 %; discordant: A only 2, B only 5" in out
+    main([*specs[0], *specs[1], "--json"])
+    assert json.loads(capsys.readouterr().out.strip())["pooled"]["b_only"] == 5
+    with pytest.raises(SystemExit) as exc:
+        main([*specs[0], specs[1][0]])  # an A without its B
     assert exc.value.code == 2

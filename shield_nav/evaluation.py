@@ -161,6 +161,14 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
 }
 """Configurations known by name. A config's ``rows`` may add or override entries."""
 
+KICKSTART_REPLICATE_SEEDS = (2,)
+"""Training seeds of the replicate kickstarted students (seed 1 is ``<f>_kickstarted_3ms``), one row each."""
+for _seed in KICKSTART_REPLICATE_SEEDS:
+    for _f, _label in (("distance", "Distance"), ("dijkstra", "Dijkstra"), ("dijkstra_cbf", "Dijkstra + CBF")):
+        _name = f"{_f}_kickstarted_3ms_seed{_seed}"
+        _label = f"{_label} (3 m/s student + PPO kickstarted by the oracle, training seed {_seed})"
+        BUILTIN_ROWS[_name] = RowConfig(_label, "policy", _name)
+
 
 @dataclass
 class SceneSelection:
@@ -196,6 +204,11 @@ class EvalConfig:
                       "dijkstra_finetuned", "dijkstra_cbf_finetuned", "distance_finetuned_3ms",
                       "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms", "distance_kickstarted_3ms",
                       "dijkstra_kickstarted_3ms", "dijkstra_cbf_kickstarted_3ms")  # fmt: skip
+        }
+        | {
+            f"{f}_kickstarted_3ms_seed{seed}": f"checkpoints/{f}_kickstarted_3ms_seed{seed}"
+            for seed in KICKSTART_REPLICATE_SEEDS
+            for f in ("distance", "dijkstra", "dijkstra_cbf")
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

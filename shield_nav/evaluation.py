@@ -162,7 +162,8 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
 """Configurations known by name. A config's ``rows`` may add or override entries."""
 
 KICKSTART_REPLICATE_SEEDS = (2,)
-"""Training seeds of the replicate kickstarted students (seed 1 is ``<f>_kickstarted_3ms``), one row each."""
+"""Training seeds of the replicate kickstarted students, one row each (seed 0, the configs' default, is
+``<f>_kickstarted_3ms``)."""
 for _seed in KICKSTART_REPLICATE_SEEDS:
     for _f, _label in (("distance", "Distance"), ("dijkstra", "Dijkstra"), ("dijkstra_cbf", "Dijkstra + CBF")):
         _name = f"{_f}_kickstarted_3ms_seed{_seed}"

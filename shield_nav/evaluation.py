@@ -161,7 +161,7 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
 }
 """Configurations known by name. A config's ``rows`` may add or override entries."""
 
-KICKSTART_REPLICATE_SEEDS = (2, 3)
+KICKSTART_REPLICATE_SEEDS = (2, 3, 4)
 """Training seeds of the replicate kickstarted students, one row each (seed 0, the configs' default, is
 ``<f>_kickstarted_3ms``)."""
 for _seed in KICKSTART_REPLICATE_SEEDS:

@@ -19,7 +19,7 @@ with the shield's acceleration model ``a = f_n R(phi, theta, psi) e3 - g e3`` (d
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,10 @@ class TrackingConfig:
 class OracleConfig:
     """Privileged geodesic-descent oracle."""
 
+    guidance: str = "geodesic"
+    """Potential the oracle descends: ``geodesic`` (the Dijkstra field Phi, around obstacles) or ``euclidean`` (the
+    straight-line distance to the episode's goal point, the potential of the paper's Distance reward). Repulsion
+    and slow-down are the same for both, so the two differ only in their global guidance."""
     lookahead_s: float = 0.3
     """The descent direction is read at p + v * lookahead_s (anticipates turns) [s]."""
     repulse_dist: float = 0.8
@@ -76,6 +80,15 @@ class OracleConfig:
     env's), with obstacles inflated by this radius [m] instead of the env's vehicle radius (0.2 m). The shortest
     paths then keep this clearance, and inside the inflated margin the field's values (nearest traversable node +
     distance to it) lead back out. 0: the env's own fields."""
+
+    def validate(self, prefix: str = "") -> None:
+        """A known guidance."""
+        require(self.guidance in ORACLE_GUIDANCE, f"{prefix}guidance",
+                f"unknown guidance {self.guidance!r}; expected one of {ORACLE_GUIDANCE}")  # fmt: skip
+
+
+ORACLE_GUIDANCE = ("geodesic", "euclidean")
+"""Potentials the oracle can descend (:attr:`OracleConfig.guidance`)."""
 
 
 @dataclass
@@ -108,6 +121,15 @@ class ReactiveConfig:
     """Replan every this many control steps (20 Hz at 100 Hz control); the chosen primitive is held in between."""
     search_turn_deg: float = 35.0
     """When no primitive is free: brake and turn the heading by this much towards the goal side [deg]."""
+    guidance: str = "euclidean"
+    """Goal direction the score aligns with: ``euclidean`` (straight at the goal point; depth only, the published
+    row) or ``geodesic`` (-grad Phi at the vehicle, read from the privileged geodesic field like the oracle's: the
+    ``reactive_geodesic`` row). Same local avoidance, different global guidance."""
+
+    def validate(self, prefix: str = "") -> None:
+        """A known guidance."""
+        require(self.guidance in ORACLE_GUIDANCE, f"{prefix}guidance",
+                f"unknown guidance {self.guidance!r}; expected one of {ORACLE_GUIDANCE}")  # fmt: skip
 
 
 @dataclass
@@ -187,6 +209,10 @@ class OracleController(Controller):
     s = clip(d(q) / slow_dist, s_min, 1) slows down where the look-ahead point is tight. grad Phi is a central
     difference with step h: (Phi(q + h e_i) - Phi(q - h e_i)) / 2h. Within ``goal_switch`` of the goal region
     (Phi(p) small) the direction becomes (g - p) / |g - p|: Phi is 0 on the whole goal box, the goal is a point.
+
+    With ``guidance: euclidean`` the direction is (g - q) / |g - q| instead (the descent of the Euclidean distance
+    to the goal point g), everything else unchanged: the same controller with the Distance reward's potential,
+    which has local minima behind non-convex obstacles (U-traps, dead ends) where the geodesic field has none.
     """
 
     privileged = True
@@ -220,24 +246,41 @@ class OracleController(Controller):
             return anchor_fields.geodesic(np.repeat(ids, per_env), anchors, pts)
         return stack.geodesic(np.repeat(ids, per_env), pts)
 
+    def _descent(self, env: Any, ids: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """-grad Phi / |grad Phi| at the points q (N, 3), by central differences of step ``fd_step``."""
+        h = self.cfg.oracle.fd_step
+        offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
+        pts = (q[:, None, :] + offsets[None]).reshape(-1, 3)
+        phi = self._geodesic(env, ids, pts, 6).reshape(len(q), 6)
+        # Points just past the goal region (x beyond the scene) read Phi(clamped) + outside: still descend to goal.
+        return -_unit((phi[:, :3] - phi[:, 3:]) / (2 * h))
+
+    def guide(self, env: Any, q: np.ndarray) -> np.ndarray:
+        """Unit descent direction (N, 3) of the guidance potential, read at the points q (one per env).
+
+        Within ``goal_switch`` of the goal (by that potential, measured at the vehicle): straight at the goal point.
+        """
+        oc = self.cfg.oracle
+        pos, ids = env.local_pos, env.scene_id_buf
+        if oc.guidance == "euclidean":
+            # -grad |g - q| = (g - q) / |g - q|: straight at the goal, blind to the obstacles between.
+            direction = _unit(env.goal_buf - q)
+            near = np.linalg.norm(env.goal_buf - pos, axis=1) < oc.goal_switch
+        else:
+            direction = self._descent(env, ids, q)
+            near = self._geodesic(env, ids, pos, 1) < oc.goal_switch
+        direction[near] = _unit(env.goal_buf[near] - pos[near])
+        return direction
+
     def commands(self, env: Any) -> np.ndarray:  # noqa: D102
         oc = self.cfg.oracle
         pos, vel = env.local_pos, env.vehicles.vel_w
-        n = len(pos)
         ids = env.scene_id_buf
         q = pos + vel * oc.lookahead_s
-        h = oc.fd_step
-        offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
-        pts = (q[:, None, :] + offsets[None]).reshape(-1, 3)
-        phi = self._geodesic(env, ids, pts, 6).reshape(n, 6)
-        grad_phi = (phi[:, :3] - phi[:, 3:]) / (2 * h)
-        # Points just past the goal region (x beyond the scene) read Phi(clamped) + outside: still descend to goal.
         d_now, g_now, _ = env.field_stack.query(ids, pos, geodesic=False)
         d_ahead = env.field_stack.esdf(ids, q)
         scale = np.clip(d_ahead / oc.slow_dist, oc.min_speed_fraction, 1.0)
-        direction = -_unit(grad_phi)
-        near = self._geodesic(env, ids, pos, 1) < oc.goal_switch
-        direction[near] = _unit(env.goal_buf[near] - pos[near])
+        direction = self.guide(env, q)
         v_des = direction * (scale * env.target_speed_buf)[:, None]
         deficit = np.maximum(oc.repulse_dist - d_now, 0.0)
         v_des += oc.repulse_gain * deficit[:, None] * _unit(g_now)
@@ -286,6 +329,8 @@ class ReactivePlanner(Controller):
         self._v_des: np.ndarray | None = None
         self._psi: np.ndarray | None = None
         self._step = 0
+        self._oracle = OracleController(replace(cfg, oracle=replace(cfg.oracle, guidance="geodesic")))
+        self.privileged = rc.guidance == "geodesic"
 
     def reset(self, env: Any) -> None:  # noqa: D102
         n = env.num_envs
@@ -294,7 +339,7 @@ class ReactivePlanner(Controller):
         self._dir = np.zeros((n, 3))
         self._step = 0
 
-    def _plan(self, env: Any, i: int) -> None:
+    def _plan(self, env: Any, i: int, guide: np.ndarray) -> None:
         rc = self.cfg.reactive
         pos = env.local_pos[i]
         r_wb = env.vehicles.R_wb[i]
@@ -303,7 +348,7 @@ class ReactivePlanner(Controller):
         a = psi0 + self._az
         dirs = np.stack((np.cos(a) * np.cos(self._el), np.sin(a) * np.cos(self._el), np.sin(self._el)), axis=1)
         free = free_distances(pts, pos, dirs, rc.collision_radius, rc.horizon)
-        to_goal = _unit(env.goal_buf[i] - pos)
+        to_goal = guide[i]
         score = rc.w_goal * (dirs @ to_goal) + rc.w_free * free / rc.horizon
         score -= rc.w_smooth * np.linalg.norm(dirs - self._dir[i], axis=1)
         # Keep inside the flight volume: no climbing within 0.4 m of the ceiling, no descending near the floor.
@@ -328,11 +373,34 @@ class ReactivePlanner(Controller):
         if self._v_des is None:
             self.reset(env)
         if self._step % self.cfg.reactive.replan_every == 0:
+            if self.cfg.reactive.guidance == "geodesic":
+                guide = self._oracle.guide(env, env.local_pos)
+            else:
+                guide = _unit(env.goal_buf - env.local_pos)
             for i in np.flatnonzero(~env.frozen_buf):
-                self._plan(env, int(i))
+                self._plan(env, int(i), guide)
         self._step += 1
         a = self.cfg.tracking.k_v * (self._v_des - env.vehicles.vel_w)
         return accel_to_command(a, self._psi, self.cfg.tracking, env.cfg.vehicle.gravity)
+
+
+class GeodesicReactivePlanner(ReactivePlanner):
+    """The reactive planner aligned with -grad Phi instead of the goal direction (the ``reactive_geodesic`` row).
+
+    Privileged global guidance on top of the same depth-only local avoidance.
+    """
+
+    privileged = True
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        super().__init__(replace(cfg, reactive=replace(cfg.reactive, guidance="geodesic")))
+
+
+class EuclideanOracleController(OracleController):
+    """The oracle with ``guidance: euclidean`` whatever the config says (the ``oracle_euclidean`` row)."""
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        super().__init__(replace(cfg, oracle=replace(cfg.oracle, guidance="euclidean")))
 
 
 class OracleExpert:
@@ -360,7 +428,13 @@ EXPERTS = {"oracle": OracleExpert}
 """Scripted experts a distillation run can imitate (``runner.expert.kind``)."""
 
 
-BASELINES = {"oracle": OracleController, "reactive": ReactivePlanner, "goal": GoalSeeker}
+BASELINES = {
+    "oracle": OracleController,
+    "oracle_euclidean": EuclideanOracleController,
+    "reactive": ReactivePlanner,
+    "reactive_geodesic": GeodesicReactivePlanner,
+    "goal": GoalSeeker,
+}
 """Baseline controllers by the ``controller`` name a row uses."""
 
 

@@ -75,7 +75,9 @@ class RowConfig:
     controller: str = "policy"
     """``policy`` (an exported depth actor), ``teacher`` (a privileged MLP teacher's PPO checkpoint: it reads the
     local ESDF map, so the row is privileged like the oracle), or a baseline: ``oracle`` (privileged),
-    ``reactive``, ``goal``."""
+    ``oracle_euclidean`` (the same oracle descending the Euclidean distance to the goal instead of Phi; privileged),
+    ``reactive``, ``reactive_geodesic`` (aligned with -grad Phi instead of the goal direction; privileged),
+    ``goal``."""
     policy: str = ""
     """Checkpoint name (a key of ``checkpoints``) for ``controller: policy`` or ``teacher``."""
     shield: bool = False
@@ -155,7 +157,10 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
     "teacher_inflation": RowConfig("Teacher, inflation (privileged map)", "teacher", "teacher_inflation"),
     "oracle": RowConfig("Oracle (privileged map)", "oracle"),
+    "oracle_euclidean": RowConfig("Oracle, Euclidean guidance (privileged ESDF)", "oracle_euclidean"),
     "reactive": RowConfig("Reactive depth primitives", "reactive"),
+    "reactive_geodesic": RowConfig("Reactive depth primitives, geodesic guidance (privileged Phi)",
+                                   "reactive_geodesic"),  # fmt: skip
     "goal_seeking": RowConfig("Goal-seeking (no shield)", "goal"),
     "shield_only": RowConfig("Shield only (goal-seeking + HOCBF)", "goal", shield=True),
 }
@@ -1221,8 +1226,10 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
         "Observation noise and domain randomization: " + ("ON (training ranges)." if cfg.randomization else "off."),
         "SR: success rate % [95 % Wilson interval]; Vel: mean speed of successful trials [m/s].",
     ]
-    if any(r.controller == "oracle" for r in prep.rows.values()):
+    if any(r.controller.startswith("oracle") for r in prep.rows.values()):
         lines.append("The oracle reads the privileged map (geodesic field and ESDF): an upper bound, not a competitor.")
+    if any(r.controller == "reactive_geodesic" for r in prep.rows.values()):
+        lines.append("The geodesic-guided reactive planner reads the privileged geodesic field for its goal direction.")
     if any(r.controller == "teacher" for r in prep.rows.values()):
         lines.append("Teacher rows read the privileged local ESDF map (no depth): the policy each student imitates.")
     for name, info in prep.policies.items():

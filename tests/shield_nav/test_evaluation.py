@@ -125,6 +125,10 @@ def test_bad_input_errors(tmp_path):
         tiny_cfg("trials_per_scene=0")
     with pytest.raises(E.ConfigError, match="no_such_key"):
         tiny_cfg("no_such_key=1")
+    with pytest.raises(E.ConfigError, match="baselines.reactive.guidance"):
+        tiny_cfg("baselines.reactive.guidance=straight")
+    with pytest.raises(E.ConfigError, match="baselines.oracle.guidance"):
+        tiny_cfg("baselines.oracle.guidance=straight")
     # A missing checkpoint: an error with 'error' (the default) and for explicitly given ones; 'skip' marks the row.
     missing = str(tmp_path / "nowhere")
     with pytest.raises(E.EvalError, match="does not exist"):

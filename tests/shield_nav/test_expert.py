@@ -14,7 +14,15 @@ from tensordict import TensorDict
 from envs.config import ConfigError
 from envs.navigation import NavigationEnv
 from envs.rsl_rl import RslRlVecEnv
-from shield_nav.baselines import BaselineConfig, OracleConfig, OracleController, OracleExpert
+from shield_nav.baselines import (
+    BaselineConfig,
+    EuclideanOracleController,
+    GoalSeeker,
+    OracleConfig,
+    OracleController,
+    OracleExpert,
+    make_baseline,
+)
 from shield_nav.models import ExpertTeacher
 from shield_nav.training import load_train_config, make_env, make_runner
 
@@ -72,6 +80,66 @@ def test_inflated_expert_fields_are_built_with_their_radius():
     np.testing.assert_allclose(got, stack.geodesic(ids, pts))
     assert not np.allclose(got, env.field_stack.geodesic(ids, pts))  # the 0.2 m field differs near obstacles
     assert oracle._fields(env)[0] is oracle._fields(env)[0]  # built once per env
+
+
+def test_euclidean_guidance_is_goal_seeking_away_from_obstacles():
+    """``guidance: euclidean`` flies straight at the goal point: where neither the repulsion nor the slow-down acts
+    (ESDF above both thresholds) its command is exactly the goal seeker's; the geodesic oracle's is not."""
+    env = NavigationEnv(num_envs=32, **SMALL)
+    env.reset(seed=5)
+    cfg = BaselineConfig(oracle=OracleConfig(lookahead_s=0.0))  # read the direction at p, as the goal seeker does
+    euclid = make_baseline("oracle_euclidean", cfg)
+    assert isinstance(euclid, EuclideanOracleController) and euclid.cfg.oracle.guidance == "euclidean"
+    assert cfg.oracle.guidance == "geodesic"  # the row's controller does not alter the shared config
+    d = env.field_stack.esdf(env.scene_id_buf, env.local_pos)
+    far_from_goal = np.linalg.norm(env.goal_buf - env.local_pos, axis=1) > cfg.oracle.goal_switch
+    free = (d > max(cfg.oracle.repulse_dist, cfg.oracle.slow_dist)) & far_from_goal
+    assert free.sum() >= 16
+    got, want = euclid.commands(env), GoalSeeker(cfg).commands(env)
+    np.testing.assert_allclose(got[free], want[free], atol=1e-9)
+    geo = OracleController(cfg).commands(env)
+    assert np.abs(geo[free] - want[free]).max() > 1e-3  # the geodesic descent is not the straight line
+
+
+def test_reactive_planner_aligns_with_its_guidance():
+    """With only the alignment term in the score, the reactive planner picks the primitive closest to its guide:
+    the goal direction (``euclidean``) or -grad Phi at the vehicle (``geodesic``, Phi differenced here by hand)."""
+    env = NavigationEnv(num_envs=12, **SMALL)
+    env.reset(seed=3)
+    for _ in range(20):
+        env.step(np.zeros((12, 4)))
+    pos, ids = env.local_pos, env.scene_id_buf
+    h = 0.2
+    grad = np.stack([(env.field_stack.geodesic(ids, pos + h * e) - env.field_stack.geodesic(ids, pos - h * e)) / (2 * h)
+                     for e in np.eye(3)], axis=1)  # fmt: skip
+    far = env.field_stack.geodesic(ids, pos) > 3.0  # outside the oracle's goal switch
+    assert far.all()
+    guides = {"euclidean": env.goal_buf - pos, "geodesic": -grad}
+    chosen = {}
+    for kind, guide in guides.items():
+        cfg = BaselineConfig()
+        cfg.reactive.w_free = cfg.reactive.w_smooth = cfg.reactive.min_free = 0.0
+        planner = make_baseline("reactive" if kind == "euclidean" else "reactive_geodesic", cfg)
+        assert planner.privileged == (kind == "geodesic")
+        planner.reset(env)
+        planner.commands(env)
+        psi0 = np.arctan2(env.vehicles.R_wb[:, 1, 0], env.vehicles.R_wb[:, 0, 0])
+        a = psi0[:, None] + planner._az[None]
+        el = np.broadcast_to(planner._el, a.shape)
+        dirs = np.stack((np.cos(a) * np.cos(el), np.sin(a) * np.cos(el), np.sin(el)), axis=2)  # (N, K, 3)
+        want = dirs[np.arange(12), np.argmax(np.einsum("nkj,nj->nk", dirs, guide), axis=1)]
+        np.testing.assert_allclose(planner._dir, want, atol=1e-12)
+        chosen[kind] = planner._dir.copy()
+    assert np.abs(chosen["euclidean"] - chosen["geodesic"]).max() > 0.05  # the two guides pick differently
+
+
+def test_unknown_oracle_guidance_fails_by_name():
+    path = os.path.join(REPO, "configs", "train", "kickstart_3ms.yaml")
+    with pytest.raises(ConfigError, match=r"runner.expert.params.oracle.guidance.*'manhattan'"):
+        load_train_config(path, overrides=["runner.expert.params.oracle.guidance=manhattan"])
+    cfg = load_train_config(path, overrides=["runner.expert.params.oracle.guidance=euclidean"])
+    expert = OracleExpert(cfg.runner.expert.params)
+    assert expert.controller.cfg.oracle.guidance == "euclidean"
 
 
 def test_expert_group_follows_resets_and_steps():

@@ -30,7 +30,7 @@ from envs.scenes.scene import MovingObstacle, Scene, default_goal_region, defaul
 TRAIN_SEEDS = range(0, 1_000_000)
 """Seeds the training family accepts."""
 EVAL_SEEDS = range(1_000_000, 2_000_000)
-"""Seeds every evaluation family (ablation, benchmark, dynamic, forest) accepts. Disjoint from TRAIN_SEEDS."""
+"""Seeds every evaluation family (ablation, benchmark, dynamic, forest, traps) accepts. Disjoint from TRAIN_SEEDS."""
 
 MIN_GAP = 0.6
 """Smallest footprint clearance (m) any geometric family uses: 1.5x the diameter of a 0.2 m vehicle."""
@@ -185,6 +185,37 @@ def _gen_ablation(rng: np.random.Generator, index: int, u: float) -> dict:
     return {"primitives": tuple(prims)}
 
 
+TRAP_COLUMNS_X = (16.0, 32.0, 48.0)
+"""x of the three columns of wide cups in the ``traps`` family [m]."""
+
+
+def _gen_traps(rng: np.random.Generator, index: int, u: float) -> dict:
+    # Not in the paper: a probe of global guidance. Three columns of wide U-traps (inner width 4.5-7 m, depth
+    # 3-5 m, opening towards the start) across the flight direction, staggered, with gaps of at least MIN_GAP
+    # between their footprints, so a straight line from the start runs into a cup in most trials, and the route
+    # around them is 1.1-1.3x the straight distance. Sparse clutter fills the rest; it is placed after the cups
+    # and keeps out of their footprint circles, so every cup is an empty dead end. Where the ``ablation`` scenes'
+    # smaller traps sit off the routes a local avoider takes (docs/results.md, "Do these scenes reward global
+    # guidance?"), here the Euclidean distance's local minima lie on them.
+    placer = _placer(rng, LO, HI, MIN_GAP)
+    prims: list[Primitive] = []
+    for xc in TRAP_COLUMNS_X:
+        y = LO[1] + rng.uniform(0.0, 4.0)  # lower edge of the next cup's footprint circle
+        while True:
+            w, d = rng.uniform(4.5, 7.0), _lerp(3.0, 5.0, u) + rng.uniform(-0.5, 0.5)
+            r = math.hypot(0.5 * d + 0.2, 0.5 * w + 0.2)  # u_trap's footprint radius (0.2 m walls)
+            if y + 2 * r > HI[1]:
+                break
+            cup, fp = C.u_trap(xc + rng.uniform(-2.0, 2.0), y + r, w, d, rng.uniform(-0.15, 0.15), LO[2], HI[2])
+            if placer.free(fp):
+                placer.add(fp)
+                prims.extend(cup)
+            y += 2 * r + rng.uniform(MIN_GAP, 2.5)
+    weights = {"tree": 0.3, "vcyl": 0.3, "icyl": 0.2, "pole": 0.2}
+    prims += _clutter(rng, placer, weights, int(round(_lerp(40, 140, u))), LO[2], HI[2])
+    return {"primitives": tuple(prims)}
+
+
 BENCH_GEOMETRIC = 12
 """Benchmark indices ``0 .. 11`` are geometric clutter, ``12 .. 15`` Perlin-noise fields."""
 
@@ -311,6 +342,11 @@ FAMILIES: dict[str, Family] = {
         ),
         Family(
             "forest", 4, "eval", 1_300_000, 5, "4 long (100 m) sparse tree fields for high-speed flight", _gen_forest,
+        ),
+        Family(
+            "traps", 8, "eval", 1_400_000, 7,
+            "8 unseen scenes (not in the paper): three staggered columns of wide U-traps across the route, sparse "
+            "clutter; a probe of global guidance", _gen_traps,
         ),
     )
 }  # fmt: skip

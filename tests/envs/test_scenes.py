@@ -26,7 +26,7 @@ from envs.scenes.sdf import primitive_sdf, union_sdf
 
 def test_family_sizes_match_the_paper():
     assert {k: f.size for k, f in FAMILIES.items()} == {
-        "train": 16, "train_shapes": 16, "ablation": 8, "benchmark": 16, "dynamic": 4, "forest": 4,
+        "train": 16, "train_shapes": 16, "ablation": 8, "benchmark": 16, "dynamic": 4, "forest": 4, "traps": 8,
     }  # fmt: skip
 
 
@@ -99,6 +99,27 @@ def test_ablation_scenes_contain_u_traps_and_dead_ends():
         assert len(boxes) >= 3 * ((2 + i // 3) + (1 + i // 4))
 
 
+def test_traps_block_the_straight_route_with_cups_facing_the_start():
+    """``traps``: >= 8 cups (three 0.2 m walls each, the only boxes), closed end downstream, and most straight
+    start-to-goal lines run into a cup's back wall (checked with the walls' own SDF along 61 lines per scene)."""
+    ys = np.linspace(-15.0, 15.0, 61)
+    xs = np.arange(0.0, 64.0, 0.05)
+    for i in range(8):
+        scene = make_scene("traps", i)
+        boxes = [p for p in scene.primitives if p.kind == "box"]
+        assert len(boxes) % 3 == 0 and len(boxes) >= 3 * 8
+        assert all(min(b.half[:2]) == pytest.approx(0.1) for b in boxes)
+        # Wall triples in u_trap order: back, left, right; the back wall is downstream of the side walls.
+        backs = [boxes[k] for k in range(0, len(boxes), 3)]
+        for k in range(0, len(boxes), 3):
+            assert boxes[k].center[0] > max(boxes[k + 1].center[0], boxes[k + 2].center[0])
+        blocked = 0
+        for y in ys:
+            pts = np.stack([xs, np.full_like(xs, y), np.full_like(xs, 1.5)], axis=1)
+            blocked += any((primitive_sdf(b, pts) < 0).any() for b in backs)
+        assert blocked / len(ys) >= 0.6, (i, blocked)
+
+
 def test_benchmark_has_12_geometric_and_4_perlin_scenes():
     for i in range(16):
         kinds = {p.kind for p in make_scene("benchmark", i).primitives}
@@ -123,7 +144,7 @@ def test_train_and_eval_seeds_are_disjoint_and_enforced():
         make_scene("train_shapes", 0, seed=EVAL_SEEDS.start)
     train = {make_scene(f, i).digest() for f in ("train", "train_shapes") for i in range(16)}
     assert len(train) == 32
-    evals = {make_scene(f, i).digest() for f in ("ablation", "benchmark") for i in range(FAMILIES[f].size)}
+    evals = {make_scene(f, i).digest() for f in ("ablation", "benchmark", "traps") for i in range(FAMILIES[f].size)}
     assert train.isdisjoint(evals)
 
 

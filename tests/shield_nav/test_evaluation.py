@@ -316,3 +316,14 @@ def test_video_writers_without_rendering(tmp_path):
              "traj": [[0.5, 0.0, 1.0, 0.0], [2.0, 0.5, 1.0, 3.0], [4.0, 1.0, 1.0, 4.0]]}  # fmt: skip
     gif = plots.animate_topdown(scene, fields, trial, str(tmp_path / "top.gif"))
     assert os.path.getsize(gif) > 0
+
+
+EVAL_CONFIGS = sorted(f for f in os.listdir(os.path.join(ROOT, "configs", "eval")) if f.endswith(".yaml"))
+
+
+@pytest.mark.parametrize("name", EVAL_CONFIGS)
+def test_shipped_eval_configs_resolve(name):
+    """Every shipped eval config loads, and its rows and committed checkpoints pass the checks run before flying."""
+    cfg = E.load_eval_config(os.path.join(ROOT, "configs", "eval", name))
+    prep = E.prepare(cfg)
+    assert set(prep.rows) == set(cfg.configurations) and not prep.missing

@@ -152,6 +152,10 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
                                               "policy", "dijkstra_cbf_kickstarted_3ms"),  # fmt: skip
     "full_kickstarted_3ms": RowConfig("Full (3 m/s student + PPO kickstarted by the oracle) = Dijkstra + CBF + shield",
                                       "policy", "dijkstra_cbf_kickstarted_3ms", shield=True),  # fmt: skip
+    "distance_traps_3ms": RowConfig("Distance (3 m/s student + PPO on train_traps)", "policy", "distance_traps_3ms"),
+    "dijkstra_traps_3ms": RowConfig("Dijkstra (3 m/s student + PPO on train_traps)", "policy", "dijkstra_traps_3ms"),
+    "dijkstra_cbf_traps_3ms": RowConfig("Dijkstra + CBF (3 m/s student + PPO on train_traps)", "policy",
+                                        "dijkstra_cbf_traps_3ms"),  # fmt: skip
     "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
     "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
@@ -209,7 +213,8 @@ class EvalConfig:
                       "oracle_distilled_shapes_3ms_mh_restart2", "distance_finetuned",
                       "dijkstra_finetuned", "dijkstra_cbf_finetuned", "distance_finetuned_3ms",
                       "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms", "distance_kickstarted_3ms",
-                      "dijkstra_kickstarted_3ms", "dijkstra_cbf_kickstarted_3ms")  # fmt: skip
+                      "dijkstra_kickstarted_3ms", "dijkstra_cbf_kickstarted_3ms", "distance_traps_3ms",
+                      "dijkstra_traps_3ms", "dijkstra_cbf_traps_3ms")  # fmt: skip
         }
         | {
             f"{f}_kickstarted_3ms_seed{seed}": f"checkpoints/{f}_kickstarted_3ms_seed{seed}"

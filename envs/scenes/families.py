@@ -196,7 +196,8 @@ def _gen_traps(rng: np.random.Generator, index: int, u: float) -> dict:
     # around them is 1.1-1.3x the straight distance. Sparse clutter fills the rest; it is placed after the cups
     # and keeps out of their footprint circles, so every cup is an empty dead end. Where the ``ablation`` scenes'
     # smaller traps sit off the routes a local avoider takes (docs/results.md, "Do these scenes reward global
-    # guidance?"), here the Euclidean distance's local minima lie on them.
+    # guidance?"), here the Euclidean distance's local minima lie on them. ``train_traps`` draws the same layout
+    # from training seeds (16 levels), so the ``traps`` scenes stay held out.
     placer = _placer(rng, LO, HI, MIN_GAP)
     prims: list[Primitive] = []
     for xc in TRAP_COLUMNS_X:
@@ -342,6 +343,11 @@ FAMILIES: dict[str, Family] = {
         ),
         Family(
             "forest", 4, "eval", 1_300_000, 5, "4 long (100 m) sparse tree fields for high-speed flight", _gen_forest,
+        ),
+        Family(
+            "train_traps", 16, "train", 0, 8,
+            "16 training levels of the traps layout (not in the paper): wide U-traps across the route, clutter rising",
+            _gen_traps,
         ),
         Family(
             "traps", 8, "eval", 1_400_000, 7,

@@ -27,6 +27,7 @@ from envs.scenes.sdf import primitive_sdf, union_sdf
 def test_family_sizes_match_the_paper():
     assert {k: f.size for k, f in FAMILIES.items()} == {
         "train": 16, "train_shapes": 16, "ablation": 8, "benchmark": 16, "dynamic": 4, "forest": 4, "traps": 8,
+        "train_traps": 16,
     }  # fmt: skip
 
 
@@ -131,7 +132,7 @@ def test_benchmark_has_12_geometric_and_4_perlin_scenes():
 
 def test_train_and_eval_seeds_are_disjoint_and_enforced():
     assert set(TRAIN_SEEDS).isdisjoint(range(EVAL_SEEDS.start, EVAL_SEEDS.stop))
-    training = {"train", "train_shapes"}
+    training = {"train", "train_shapes", "train_traps"}
     for name, fam in FAMILIES.items():
         allowed = TRAIN_SEEDS if name in training else EVAL_SEEDS
         assert fam.default_seed in allowed and (fam.split == "train") == (name in training)
@@ -142,8 +143,10 @@ def test_train_and_eval_seeds_are_disjoint_and_enforced():
         make_scene("benchmark", 0, seed=0)
     with pytest.raises(ValueError, match="seed range"):
         make_scene("train_shapes", 0, seed=EVAL_SEEDS.start)
-    train = {make_scene(f, i).digest() for f in ("train", "train_shapes") for i in range(16)}
-    assert len(train) == 32
+    with pytest.raises(ValueError, match="seed range"):
+        make_scene("train_traps", 0, seed=EVAL_SEEDS.start)
+    train = {make_scene(f, i).digest() for f in ("train", "train_shapes", "train_traps") for i in range(16)}
+    assert len(train) == 48
     evals = {make_scene(f, i).digest() for f in ("ablation", "benchmark", "traps") for i in range(FAMILIES[f].size)}
     assert train.isdisjoint(evals)
 

@@ -179,6 +179,14 @@ for _seed in KICKSTART_REPLICATE_SEEDS:
         _label = f"{_label} (3 m/s student + PPO kickstarted by the oracle, training seed {_seed})"
         BUILTIN_ROWS[_name] = RowConfig(_label, "policy", _name)
 
+TRAPS_REPLICATE_SEEDS = (2, 3)
+"""Training seeds of the replicate ``train_traps`` policies, one row each (seed 0 is ``<f>_traps_3ms``)."""
+for _seed in TRAPS_REPLICATE_SEEDS:
+    for _f, _label in (("distance", "Distance"), ("dijkstra", "Dijkstra"), ("dijkstra_cbf", "Dijkstra + CBF")):
+        _name = f"{_f}_traps_3ms_seed{_seed}"
+        _label = f"{_label} (3 m/s student + PPO on train_traps, training seed {_seed})"
+        BUILTIN_ROWS[_name] = RowConfig(_label, "policy", _name)
+
 
 @dataclass
 class SceneSelection:
@@ -219,6 +227,11 @@ class EvalConfig:
         | {
             f"{f}_kickstarted_3ms_seed{seed}": f"checkpoints/{f}_kickstarted_3ms_seed{seed}"
             for seed in KICKSTART_REPLICATE_SEEDS
+            for f in ("distance", "dijkstra", "dijkstra_cbf")
+        }
+        | {
+            f"{f}_traps_3ms_seed{seed}": f"checkpoints/{f}_traps_3ms_seed{seed}"
+            for seed in TRAPS_REPLICATE_SEEDS
             for f in ("distance", "dijkstra", "dijkstra_cbf")
         }
     )

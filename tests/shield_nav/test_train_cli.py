@@ -221,3 +221,25 @@ def test_a_failed_export_keeps_the_checkpoint_and_says_how_to_re_export(tmp_path
     assert os.path.isfile(os.path.join(run_dir, "model_0.pt"))
     err = capsys.readouterr().err
     assert f"python -m shield_nav.package {os.path.join(run_dir, 'model_0.pt')}" in err
+
+
+TRAIN_CONFIGS = sorted(f for f in os.listdir(os.path.join(REPO, "configs", "train")) if f.endswith(".yaml"))
+
+
+@pytest.mark.parametrize("name", TRAIN_CONFIGS)
+def test_shipped_train_configs_load_and_their_inputs_exist(name):
+    """Every shipped train config passes the checks run before training, and the committed files it starts from exist
+    (a partial base such as finetune.yaml may leave its actor_init to the configs that include it)."""
+    from shield_nav.training import load_train_config
+
+    cfg = load_train_config(os.path.join(REPO, "configs", "train", name))
+    r = cfg.runner
+    for key in ("actor_init", "student_init"):
+        path = getattr(r, key)
+        assert not path or os.path.isfile(os.path.join(REPO, path)), f"{name}: runner.{key} {path!r} missing"
+    if name.startswith("traps_3ms"):  # the reward ablation on the traps layout: no oracle, the drift penalty
+        assert cfg.env.scenes.family == "train_traps" and not r.expert.kind
+        assert r.algorithm.anchor_target == "actor_init" and r.actor_init.endswith("_mh_restart2/model.pt")
+        if name != "traps_3ms.yaml":
+            want = {"distance": "euclidean"}.get(name[len("traps_3ms_") : -len(".yaml")], "geodesic")
+            assert cfg.env.reward.navigation == want

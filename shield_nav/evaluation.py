@@ -179,13 +179,15 @@ for _seed in KICKSTART_REPLICATE_SEEDS:
         _label = f"{_label} (3 m/s student + PPO kickstarted by the oracle, training seed {_seed})"
         BUILTIN_ROWS[_name] = RowConfig(_label, "policy", _name)
 
-TRAPS_REPLICATE_SEEDS = (2, 3)
-"""Training seeds of the replicate ``train_traps`` policies, one row each (seed 0 is ``<f>_traps_3ms``)."""
-for _seed in TRAPS_REPLICATE_SEEDS:
-    for _f, _label in (("distance", "Distance"), ("dijkstra", "Dijkstra"), ("dijkstra_cbf", "Dijkstra + CBF")):
-        _name = f"{_f}_traps_3ms_seed{_seed}"
-        _label = f"{_label} (3 m/s student + PPO on train_traps, training seed {_seed})"
-        BUILTIN_ROWS[_name] = RowConfig(_label, "policy", _name)
+TRAPS_REPLICATES = (("distance", 3), ("dijkstra", 2), ("dijkstra_cbf", 2), ("dijkstra_cbf", 3))
+"""(formulation, training seed) of the committed replicate ``train_traps`` policies, one row each (seed 0 is
+``<f>_traps_3ms``). Distance seed 2 and Dijkstra seed 3 were lost: launched in the same second as their other seed,
+they shared its run folder (fixed since: ``_new_run_dir``)."""
+for _f, _seed in TRAPS_REPLICATES:
+    _label = {"distance": "Distance", "dijkstra": "Dijkstra", "dijkstra_cbf": "Dijkstra + CBF"}[_f]
+    _name = f"{_f}_traps_3ms_seed{_seed}"
+    BUILTIN_ROWS[_name] = RowConfig(f"{_label} (3 m/s student + PPO on train_traps, training seed {_seed})", "policy",
+                                    _name)  # fmt: skip
 
 
 @dataclass
@@ -230,9 +232,7 @@ class EvalConfig:
             for f in ("distance", "dijkstra", "dijkstra_cbf")
         }
         | {
-            f"{f}_traps_3ms_seed{seed}": f"checkpoints/{f}_traps_3ms_seed{seed}"
-            for seed in TRAPS_REPLICATE_SEEDS
-            for f in ("distance", "dijkstra", "dijkstra_cbf")
+            f"{f}_traps_3ms_seed{seed}": f"checkpoints/{f}_traps_3ms_seed{seed}" for f, seed in TRAPS_REPLICATES
         }
     )
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""

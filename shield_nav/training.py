@@ -555,8 +555,22 @@ def _randomize_episode_lengths(env: VecEnv) -> None:
 
 
 def _new_run_dir(cfg: TrainConfig) -> str:
+    """A fresh ``<log_root>/<experiment>/<stamp>_<name>`` folder, claimed atomically.
+
+    Runs of the same config started within the same second (e.g. several seeds launched together) would otherwise
+    share one folder and overwrite each other's checkpoints: the second and later get ``_2``, ``_3``, ...
+    """
     stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    path = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{cfg.name}")
+    base = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{cfg.name}")
+    os.makedirs(os.path.dirname(base), exist_ok=True)
+    path, k = base, 1
+    while True:
+        try:
+            os.mkdir(path)  # fails if another run claimed it first
+            break
+        except FileExistsError:
+            k += 1
+            path = f"{base}_{k}"
     os.makedirs(os.path.join(path, "params"), exist_ok=True)
     return path
 

@@ -243,3 +243,26 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         if name != "traps_3ms.yaml":
             want = {"distance": "euclidean"}.get(name[len("traps_3ms_") : -len(".yaml")], "geodesic")
             assert cfg.env.reward.navigation == want
+
+
+def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeypatch):
+    """Seeds launched together must not share (and overwrite) one run folder."""
+    import datetime
+
+    from shield_nav import training
+    from shield_nav.training import load_train_config
+
+    frozen = datetime.datetime(2026, 1, 2, 3, 4, 5)
+
+    class Clock(datetime.datetime):
+        @classmethod
+        def now(cls, tz=None):
+            return frozen
+
+    monkeypatch.setattr(training.datetime, "datetime", Clock)
+    cfg = load_train_config(os.path.join(REPO, "configs", "train", "quick.yaml"))
+    cfg.log_root = str(tmp_path)
+    dirs = [training._new_run_dir(cfg) for _ in range(3)]
+    stem = os.path.join(str(tmp_path), cfg.experiment_name, f"2026-01-02_03-04-05_{cfg.name}")
+    assert dirs == [stem, stem + "_2", stem + "_3"]
+    assert all(os.path.isdir(os.path.join(d, "params")) for d in dirs)

@@ -26,6 +26,7 @@ import numpy as np
 
 from envs.camera import depth_to_points
 from envs.config import require
+from shield_nav.expert import ExpertConfig, PlannerController
 from shield_nav.shield import command_from_accel
 
 
@@ -142,6 +143,8 @@ class BaselineConfig:
     """Geodesic oracle."""
     reactive: ReactiveConfig = field(default_factory=ReactiveConfig)
     """Reactive depth planner."""
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    """Privileged planning expert (:mod:`shield_nav.expert`)."""
 
 
 def accel_to_command(accel_w: np.ndarray, psi: np.ndarray, cfg: TrackingConfig, gravity: float = 9.81) -> np.ndarray:
@@ -424,7 +427,14 @@ class OracleExpert:
         return act
 
 
-EXPERTS = {"oracle": OracleExpert}
+class PlannerExpert(OracleExpert):
+    """The planning expert (:class:`shield_nav.expert.PlannerController`) as a DAgger expert; stateless too."""
+
+    def __init__(self, cfg: BaselineConfig | None = None) -> None:  # noqa: D107
+        self.controller = PlannerController(cfg or BaselineConfig())
+
+
+EXPERTS = {"oracle": OracleExpert, "planner": PlannerExpert}
 """Scripted experts a distillation run can imitate (``runner.expert.kind``)."""
 
 
@@ -434,6 +444,7 @@ BASELINES = {
     "reactive": ReactivePlanner,
     "reactive_geodesic": GeodesicReactivePlanner,
     "goal": GoalSeeker,
+    "expert": PlannerController,
 }
 """Baseline controllers by the ``controller`` name a row uses."""
 

@@ -160,6 +160,7 @@ BUILTIN_ROWS: dict[str, RowConfig] = {
     "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
     "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
     "teacher_inflation": RowConfig("Teacher, inflation (privileged map)", "teacher", "teacher_inflation"),
+    "expert": RowConfig("Expert (privileged planner)", "expert"),
     "oracle": RowConfig("Oracle (privileged map)", "oracle"),
     "oracle_euclidean": RowConfig("Oracle, Euclidean guidance (privileged ESDF)", "oracle_euclidean"),
     "reactive": RowConfig("Reactive depth primitives", "reactive"),

@@ -1,0 +1,279 @@
+"""The privileged planning expert: geodesic path, braking-aware speed profile, lag-anticipating tracker.
+
+Every control step, for every env at once (numpy over envs, a short loop over path samples):
+
+1. **Path.** From the vehicle's position, trace ``K = horizon / ds`` steps of length ``ds`` down the geodesic field
+   of the episode's goal anchor, built with obstacles inflated by ``field_radius`` (so the shortest paths keep that
+   clearance). Each step follows ``u = -grad Phi / |grad Phi|`` (central differences of step ``fd_step``), bent away
+   from obstacles by ``clearance_gain * max(d_pref - d, 0) / d_pref`` times the part of ``grad d`` (ESDF gradient)
+   normal to ``u``, so where there is room the path keeps ``d_pref`` of clearance. Within ``goal_switch`` of the
+   goal (by Phi) the step goes straight at the goal point.
+2. **Speed profile.** The curvature at sample ``k`` is the turning angle between the tangents ``curv_window``
+   samples before and after it, over that arc length (a kink the vehicle cannot follow anyway is spread over the
+   window). The speed cap there is ``min(v_target, sqrt(lat_accel / kappa), clear_gain * (d - r_vehicle))``;
+   a backward pass ``v_k <= sqrt(v_{k+1}^2 + 2 brake_accel ds)`` makes every cap reachable by braking, so the
+   vehicle never arrives at a turn or a gap faster than it can take it.
+3. **Tracker.** The attitude loop acts ``lag_s`` after a command (measured from the vehicle's step response,
+   docs/expert.md), so the reference is read ``|v| lag_s`` along the path: speed ``v_r`` there, direction the chord
+   to the point ``max(lookahead_min, |v| lookahead_s)`` ahead (pure pursuit pulls back onto the path), and the
+   feedforward acceleration ``v_r d(v t)/ds`` (centripetal and along-track). The command is
+   ``a = a_ff + k_v (v_ref - v)``, turned into thrust and attitude with the tilt and thrust limits of
+   :class:`shield_nav.baselines.TrackingConfig` overridden by ``max_tilt_deg``. Yaw follows the chord, so the
+   camera looks along the path.
+
+The expert is stateless: its command depends only on the current state, so it labels any state a student reaches
+(DAgger). It reads the map, so it is **privileged**: an upper bound, not a competitor.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from envs.config import require
+
+
+@dataclass
+class ExpertConfig:
+    """Parameters of :class:`PlannerController` (``baselines.expert`` in an eval or train config)."""
+
+    field_radius: float = 0.5
+    """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""
+    horizon: float = 14.0
+    """Length of the traced path [m] (longer than the braking distance at the highest speed)."""
+    ds: float = 0.35
+    """Path sample spacing [m]."""
+    fd_step: float = 0.2
+    """Central-difference step of grad Phi [m]."""
+    d_pref: float = 1.0
+    """Preferred clearance (ESDF) of the path [m]: below it, each step is bent away from the nearest obstacle."""
+    clearance_gain: float = 1.0
+    """Strength of that bend (1: a step at the surface leaves at 45 degrees)."""
+    goal_switch: float = 3.0
+    """Below this geodesic distance to the goal, path steps go straight at the goal point [m]."""
+    momentum: float = 0.5
+    """Each step's direction is unit(u + momentum * previous step): damps the zig-zag that grad Phi shows along the
+    boundary of the inflated obstacles (0: raw descent)."""
+    smooth_window: int = 7
+    """Samples of the centred moving average applied to the traced path (odd; 1: off). Where a smoothed sample comes
+    closer than ``field_radius - smooth_slack`` to an obstacle, the raw sample is kept."""
+    smooth_slack: float = 0.15
+    """Clearance the smoothing may give up below ``field_radius`` [m]."""
+    curv_window: int = 3
+    """Samples on either side over which the turning angle is measured (curvature = angle / arc length)."""
+    lat_accel: float = 12.0
+    """Lateral acceleration the speed profile allows in turns [m/s^2]."""
+    brake_accel: float = 6.0
+    """Deceleration the speed profile plans with [m/s^2]."""
+    clear_gain: float = 0.0
+    """Speed cap per metre of clearance beyond the vehicle radius along the path [1/s] (0: off)."""
+    min_speed: float = 1.0
+    """Floor of the speed profile [m/s] (keeps the vehicle moving in tight spots)."""
+    lag_s: float = 0.08
+    """Command-to-acceleration lag of the inner loop the tracker anticipates [s]."""
+    lookahead_s: float = 0.3
+    """Pure-pursuit look-ahead time [s]."""
+    lookahead_min: float = 1.0
+    """Pure-pursuit look-ahead floor [m]."""
+    k_v: float = 4.0
+    """Velocity-error gain [1/s]."""
+    ff_gain: float = 0.5
+    """Weight of the feedforward acceleration (0: pure velocity tracking)."""
+    ff_window: int = 6
+    """Samples over which the feedforward d(v t)/ds is differenced (a one-sample difference is noise)."""
+    max_tilt_deg: float = 48.0
+    """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50)."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Positive lengths, gains and limits, naming the key."""
+        for name in ("horizon", "ds", "fd_step", "d_pref", "lat_accel", "brake_accel", "k_v", "lookahead_min",
+                     "ff_window"):
+            require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
+        for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
+                     "lookahead_s", "ff_gain", "momentum", "smooth_slack"):  # fmt: skip
+            require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
+        require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
+                f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
+        require(self.curv_window >= 1, f"{prefix}curv_window", f"must be >= 1, got {self.curv_window}")
+        require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
+                "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip
+        require(0 < self.max_tilt_deg < 60, f"{prefix}max_tilt_deg", "must be in (0, 60)")
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def speed_profile(kappa: np.ndarray, cap: np.ndarray, lat_accel: float, brake_accel: float, ds: float,
+                  min_speed: float) -> np.ndarray:  # fmt: skip
+    """Fastest speeds (N, K) along a path that respect the caps and can brake into each of them.
+
+    ``v_k = max(min_speed, min(cap_k, sqrt(lat_accel / kappa_k)))``, then backwards
+    ``v_k = min(v_k, sqrt(v_{k+1}^2 + 2 brake_accel ds))``: from any sample, braking at ``brake_accel`` reaches every
+    later cap by the time it gets there.
+    """
+    v = np.minimum(cap, np.sqrt(lat_accel / np.maximum(kappa, 1e-9)))
+    v = np.maximum(v, min_speed)
+    two_a_ds = 2.0 * brake_accel * ds
+    for k in range(v.shape[1] - 2, -1, -1):
+        v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + two_a_ds))
+    return v
+
+
+def windowed_curvature(path: np.ndarray, window: int) -> np.ndarray:
+    """Curvature (N, K+1) at every sample of paths (N, K+1, 3) with spacing ~ds.
+
+    At sample k: the angle between the tangents ``window`` segments before and after (clamped to the ends),
+    divided by the arc length between their midpoints. A circle of radius R gives 1 / R.
+    """
+    seg = np.diff(path, axis=1)  # (N, K, 3)
+    seglen = np.linalg.norm(seg, axis=2)
+    tan = seg / np.maximum(seglen, 1e-9)[..., None]
+    n_seg = seg.shape[1]
+    idx = np.arange(n_seg + 1)
+    a = np.clip(idx - window, 0, n_seg - 1)
+    b = np.clip(idx + window - 1, 0, n_seg - 1)
+    cos = np.clip(np.einsum("nkc,nkc->nk", tan[:, a], tan[:, b]), -1.0, 1.0)
+    angle = np.arccos(cos)
+    cum = np.concatenate((np.zeros((len(path), 1)), np.cumsum(seglen, axis=1)), axis=1)
+    mid = 0.5 * (cum[:, :-1] + cum[:, 1:])  # arc length at each segment's midpoint (N, K)
+    arc = np.maximum(mid[:, b] - mid[:, a], 1e-9)
+    return np.where(b > a, angle / arc, 0.0)
+
+
+class PlannerController:
+    """The planning expert as an evaluation controller (row ``expert``; see the module docstring)."""
+
+    privileged = True
+
+    def __init__(self, cfg: Any) -> None:  # noqa: D107
+        self.cfg = cfg
+        self.ec: ExpertConfig = cfg.expert
+        self._own: tuple | None = None
+        self.last: dict[str, np.ndarray] = {}
+
+    def reset(self, env: Any) -> None:
+        """Nothing to reset (stateless); the planning fields are built on first use and kept per env."""
+
+    # ------------------------------------------------------------------------------------------------ fields
+    def _fields(self, env: Any) -> tuple[Any, Any]:
+        """(FieldStack, GoalAnchorFields or None) with obstacles inflated by ``field_radius``, built once per env."""
+        if self._own is not None and self._own[0] is env:
+            return self._own[1], self._own[2]
+        from envs.fields import FieldStack, build_fields
+        from envs.fields.anchors import GoalAnchorFields
+
+        radius = self.ec.field_radius
+        if abs(radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9:
+            stack, anchors = env.field_stack, env.anchor_fields
+        else:
+            res = env.cfg.scenes.field_resolution
+            fields = [build_fields(s, resolution=res, vehicle_radius=radius) for s in env.scenes]
+            k = env.anchor_fields.count if env.anchor_fields is not None else 0
+            stack, anchors = FieldStack(fields), (GoalAnchorFields(env.scenes, fields, k) if k > 0 else None)
+        self._own = (env, stack, anchors)
+        return stack, anchors
+
+    def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        stack, anchors = self._fields(env)
+        if anchors is not None:
+            return anchors.geodesic(ids, anchor, pts)
+        return stack.geodesic(ids, pts)
+
+    # ------------------------------------------------------------------------------------------------ planning
+    def trace(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Paths (N, K+1, 3) from every vehicle down the inflated geodesic field, and their ESDF (N, K+1)."""
+        ec = self.ec
+        n = env.num_envs
+        ids, anchor = env.scene_id_buf, env.anchor_buf
+        goal = env.goal_buf
+        k_steps = int(math.ceil(ec.horizon / ec.ds))
+        h = ec.fd_step
+        offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
+        ids6, anchor6 = np.repeat(ids, 7), np.repeat(anchor, 7)
+        path = np.empty((n, k_steps + 1, 3))
+        clear = np.empty((n, k_steps + 1))
+        x = env.local_pos.astype(np.float64).copy()
+        prev: np.ndarray | None = None
+        for k in range(k_steps + 1):
+            path[:, k] = x
+            d, grad_d, _ = env.field_stack.query(ids, x, geodesic=False)
+            clear[:, k] = d
+            if k == k_steps:
+                break
+            pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
+            phi = self._phi(env, ids6, anchor6, pts).reshape(n, 7)
+            u = -_unit(phi[:, 1:4] - phi[:, 4:7])
+            g = _unit(grad_d)
+            g_perp = g - np.einsum("nc,nc->n", g, u)[:, None] * u
+            w = ec.clearance_gain * np.clip(ec.d_pref - d, 0.0, ec.d_pref) / ec.d_pref
+            u = _unit(u + w[:, None] * g_perp)
+            near = phi[:, 0] < ec.goal_switch
+            if near.any():
+                u[near] = _unit(goal[near] - x[near])
+            if prev is not None and ec.momentum > 0:
+                u = _unit(u + ec.momentum * prev)
+            prev = u
+            x = x + ec.ds * u
+        if ec.smooth_window > 1:
+            path, clear = self._smooth(env, path, clear)
+        return path, clear
+
+    def _smooth(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centred moving average of the paths (window shrinks at the ends; the first sample stays put)."""
+        ec = self.ec
+        n, kp1, _ = path.shape
+        half = ec.smooth_window // 2
+        cum = np.concatenate((np.zeros((n, 1, 3)), np.cumsum(path, axis=1)), axis=1)
+        k = np.arange(kp1)
+        w = np.minimum(np.minimum(k, kp1 - 1 - k), half)
+        smooth = (cum[:, k + w + 1] - cum[:, k - w]) / (2 * w + 1)[None, :, None]
+        ids = np.repeat(env.scene_id_buf, kp1)
+        d = env.field_stack.esdf(ids, smooth.reshape(-1, 3)).reshape(n, kp1)
+        keep = d >= ec.field_radius - ec.smooth_slack
+        return np.where(keep[..., None], smooth, path), np.where(keep, d, clear)
+
+    def plan(self, env: Any) -> dict[str, np.ndarray]:
+        """Path, clearance, curvature and speed profile (N, K+1) for every env."""
+        ec = self.ec
+        path, clear = self.trace(env)
+        kappa = windowed_curvature(path, ec.curv_window)
+        cap = np.repeat(env.target_speed_buf[:, None], path.shape[1], axis=1)
+        if ec.clear_gain > 0:
+            margin = clear - env.cfg.vehicle.airframe.collision_radius
+            cap = np.minimum(cap, ec.clear_gain * np.maximum(margin, 0.0))
+        v = speed_profile(kappa, cap, ec.lat_accel, ec.brake_accel, ec.ds, ec.min_speed)
+        return {"path": path, "clear": clear, "kappa": kappa, "speed": v}
+
+    def commands(self, env: Any) -> np.ndarray:
+        """Commands (N, 4) = [f_n, phi, theta, psi] (see the module docstring)."""
+        from shield_nav.baselines import accel_to_command
+
+        ec = self.ec
+        plan = self.plan(env)
+        path, v_prof = plan["path"], plan["speed"]
+        n, kp1 = v_prof.shape
+        rows = np.arange(n)
+        pos, vel = env.local_pos, env.vehicles.vel_w
+        speed = np.linalg.norm(vel, axis=1)
+        seg = np.diff(path, axis=1)
+        tan = _unit(seg)  # (N, K, 3)
+        k_ref = np.clip(np.round(speed * ec.lag_s / ec.ds).astype(int), 0, kp1 - 3)
+        k_la = np.clip(np.round(np.maximum(ec.lookahead_min, speed * ec.lookahead_s) / ec.ds).astype(int),
+                       k_ref + 1, kp1 - 1)  # fmt: skip
+        v_r = v_prof[rows, k_ref]
+        chord = _unit(path[rows, k_la] - pos)
+        v_ref = v_r[:, None] * chord
+        # Feedforward d(v t)/dt = v d(v t)/ds at the reference sample.
+        k_ff = np.minimum(k_ref + ec.ff_window, kp1 - 2)
+        vt0 = v_prof[rows, k_ref, None] * tan[rows, k_ref]
+        vt1 = v_prof[rows, k_ff, None] * tan[rows, k_ff]
+        a_ff = ec.ff_gain * v_r[:, None] * (vt1 - vt0) / (np.maximum(k_ff - k_ref, 1) * ec.ds)[:, None]
+        a = a_ff + ec.k_v * (v_ref - vel)
+        psi = np.arctan2(chord[:, 1], chord[:, 0])
+        track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
+        self.last = {**plan, "v_ref": v_ref, "a": a}
+        return accel_to_command(a, psi, track, env.cfg.vehicle.gravity)

@@ -1,0 +1,105 @@
+"""The planning expert (shield_nav.expert): speed profile, curvature, paths and commands against hand computations."""
+
+import math
+
+import numpy as np
+import pytest
+
+from envs.config import ConfigError, load_config
+from envs.navigation import NavigationEnv
+from shield_nav.baselines import BaselineConfig, PlannerExpert, make_baseline
+from shield_nav.expert import ExpertConfig, PlannerController, speed_profile, windowed_curvature
+
+SMALL = {"scenes.indices": [0, 1], "episode.initial_speed_fraction": [0.3, 0.5]}
+
+
+def test_speed_profile_brakes_into_a_slow_sample_by_hand():
+    # Straight path (kappa 0), cap 9 m/s except 2 m/s at sample 6; a = 4 m/s^2, ds = 0.5 m: 2 a ds = 4.
+    cap = np.full((1, 10), 9.0)
+    cap[0, 6] = 2.0
+    v = speed_profile(np.zeros((1, 10)), cap, lat_accel=8.0, brake_accel=4.0, ds=0.5, min_speed=0.5)[0]
+    expect = [math.sqrt(x) for x in (28.0, 24.0, 20.0, 16.0, 12.0, 8.0)] + [2.0, 9.0, 9.0, 9.0]
+    np.testing.assert_allclose(v, expect, rtol=1e-12)
+
+
+def test_speed_profile_curvature_cap_and_floor():
+    # kappa 2 1/m with 8 m/s^2 lateral: sqrt(8 / 2) = 2 m/s; a huge kappa is floored at min_speed.
+    kappa = np.array([[0.0, 2.0, 1e6, 0.0]])
+    v = speed_profile(kappa, np.full((1, 4), 9.0), lat_accel=8.0, brake_accel=1e6, ds=0.1, min_speed=0.7)[0]
+    np.testing.assert_allclose(v[1:3], [2.0, 0.7])
+
+
+@pytest.mark.parametrize("radius", [2.0, 5.0])
+def test_windowed_curvature_of_a_circle_is_one_over_its_radius(radius):
+    ds = 0.1
+    th = np.arange(0, 60) * ds / radius
+    circle = np.stack((radius * np.sin(th), radius * (1 - np.cos(th)), np.zeros_like(th)), axis=1)[None]
+    k = windowed_curvature(circle, 3)[0]
+    # Chord lengths shorten the arc slightly: within 0.5 % of 1/R away from the ends.
+    np.testing.assert_allclose(k[5:-5], 1.0 / radius, rtol=5e-3)
+    line = np.stack((np.arange(20) * 0.3, np.zeros(20), np.ones(20)), axis=1)[None]
+    np.testing.assert_allclose(windowed_curvature(line, 3), 0.0, atol=1e-6)
+
+
+def _env(n=8, speed=7.0):
+    env = NavigationEnv(num_envs=n, **SMALL, **{"episode.target_speeds": [speed], "episode.speed_range": []})
+    env.reset(seed=3)
+    return env
+
+
+def test_paths_descend_the_inflated_geodesic_field_and_keep_clearance():
+    env = _env()
+    raw = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_window=1))).plan(env)["path"]
+    np.testing.assert_allclose(np.linalg.norm(np.diff(raw, axis=1), axis=2), 0.35, rtol=1e-9)  # steps of ds
+    ctrl = PlannerController(BaselineConfig())
+    plan = ctrl.plan(env)
+    path, speed = plan["path"], plan["speed"]
+    ec = ctrl.ec
+    assert path.shape == (8, int(math.ceil(ec.horizon / ec.ds)) + 1, 3)
+    np.testing.assert_allclose(path[:, 0], env.local_pos)
+    # Smoothing is a 7-sample moving average inside (where it keeps clearance): check one interior sample by hand.
+    k = 10
+    avg = raw[:, k - 3 : k + 4].mean(axis=1)
+    ok = np.isclose(path[:, k], avg).all(axis=1) | np.isclose(path[:, k], raw[:, k]).all(axis=1)
+    assert ok.all()
+    # Phi of the episode's anchor field, independently queried, falls along every path.
+    stack, anchors = ctrl._fields(env)
+    ids = np.repeat(env.scene_id_buf, path.shape[1])
+    phi = anchors.geodesic(ids, np.repeat(env.anchor_buf, path.shape[1]), path.reshape(-1, 3)).reshape(8, -1)
+    assert np.all(phi[:, -1] < phi[:, 0] - 0.8 * ec.horizon)
+    # The traced clearance is the env's own ESDF, and paths stay out of the obstacles.
+    np.testing.assert_allclose(plan["clear"], env.field_stack.esdf(ids, path.reshape(-1, 3)).reshape(8, -1))
+    assert plan["clear"].min() > env.cfg.vehicle.airframe.collision_radius
+    # The profile never exceeds the target speed and can brake between consecutive samples.
+    assert np.all(speed <= 7.0 + 1e-12)
+    assert np.all(speed[:, :-1] ** 2 <= speed[:, 1:] ** 2 + 2 * ec.brake_accel * ec.ds + 1e-9)
+
+
+def test_command_at_rest_on_a_straight_path_accelerates_along_it():
+    """With v = 0 and no feedforward, a = k_v v_ref: the thrust vector is g e3 + k_v v_r chord (before limits)."""
+    env = _env(n=4, speed=3.0)
+    env.vehicles.vel_w[:] = 0.0
+    cfg = BaselineConfig(expert=ExpertConfig(ff_gain=0.0, k_v=1.0, max_tilt_deg=59.0))
+    ctrl = PlannerController(cfg)
+    cmd = ctrl.commands(env)
+    v_ref = ctrl.last["v_ref"]
+    np.testing.assert_allclose(ctrl.last["a"], 1.0 * v_ref, atol=1e-12)
+    # f_n = |a + g e3|, and the yaw is the chord's heading.
+    np.testing.assert_allclose(cmd[:, 0], np.linalg.norm(v_ref + [0, 0, 9.81], axis=1), rtol=1e-9)
+    np.testing.assert_allclose(cmd[:, 3], np.arctan2(v_ref[:, 1], v_ref[:, 0]), atol=1e-12)
+    # At rest the reference is the first sample's planned speed along the chord.
+    np.testing.assert_allclose(np.linalg.norm(v_ref, axis=1), ctrl.last["speed"][:, 0], rtol=1e-9)
+
+
+def test_planner_is_a_baseline_row_and_a_dagger_expert():
+    env = _env(n=4)
+    assert isinstance(make_baseline("expert", BaselineConfig()), PlannerController)
+    act = PlannerExpert()(env)
+    assert act.shape == (4, 4) and np.all(np.abs(act) <= 1.0) and np.isfinite(act).all()
+
+
+@pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
+                                            ("lag_s", -0.1)])  # fmt: skip
+def test_bad_expert_config_names_the_key(key, value):
+    with pytest.raises(ConfigError, match=f"expert.{key}"):
+        load_config(BaselineConfig, overrides={f"expert.{key}": value})

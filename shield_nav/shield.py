@@ -57,6 +57,13 @@ class ShieldConfig:
     """Safety radius [m] around every obstacle point (vehicle collision radius 0.2 m plus margin)."""
     max_constraints: int = 8
     """K: obstacle constraints kept per step (the tightest sector minima, see ``select_constraints``)."""
+    active_set_iterations: int = 4
+    """After each QP, the whole cloud is checked at the corrected acceleration a*: if a point's row is violated
+    (the selection ranked margins at the *raw* command, so the point that binds after the correction can have been
+    dropped), the K tightest sectors at a* are added to the rows and the QP is solved again, up to this many times.
+    0: select once at the raw command (the paper's formulation, kept as a switch)."""
+    active_set_tol: float = 1.0e-6
+    """Violation [m^2/s^2 of the HOCBF row] below which a point counts as satisfied in that check."""
     azimuth_sectors: int = 12
     """Azimuth bins of the direction from the vehicle to a point (world frame)."""
     elevation_sectors: int = 3
@@ -99,6 +106,8 @@ class ShieldConfig:
         require(self.alpha1 > 0, f"{prefix}alpha1", f"must be > 0, got {self.alpha1}")
         require(self.r_safe > 0, f"{prefix}r_safe", f"must be > 0, got {self.r_safe}")
         require(self.max_constraints >= 1, f"{prefix}max_constraints", "must be >= 1")
+        require(0 <= self.active_set_iterations <= 50, f"{prefix}active_set_iterations", "must be in [0, 50]")
+        require(self.active_set_tol >= 0, f"{prefix}active_set_tol", "must be >= 0")
         require(self.azimuth_sectors >= 1 and self.elevation_sectors >= 1, f"{prefix}azimuth_sectors", "must be >= 1")
         require(self.voxel >= 0, f"{prefix}voxel", "must be >= 0")
         require(
@@ -522,6 +531,17 @@ class HOCBFShield:
                 violated = violated or self._a_buf[2] < b_g
             if violated:
                 a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
+                for _ in range(self.cfg.active_set_iterations if status[i] == STATUS_SOLVED else 0):
+                    # Check every point at a*; add the tightest sectors there if any row is broken, and re-solve.
+                    r_new, a_new, b_new = self.constraints(pts, pos_w[i], vel_w[i], a_star)
+                    if len(b_new) == 0 or self._min_buf[0] >= -self.cfg.active_set_tol:
+                        break
+                    a_mat, b_vec = np.vstack((a_mat, a_new)), np.concatenate((b_vec, b_new))
+                    a_star, status[i], slack[i], us = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
+                    solve_us[i] += us
+                    ncon[i] = len(b_vec) - (self.cfg.min_altitude > 0)
+                    if status[i] != STATUS_SOLVED:
+                        break
                 a_safe[i] = a_star
                 out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], cmd[i, 3], g)
                 active[i] = True

@@ -297,3 +297,51 @@ def test_ground_row_joins_the_obstacle_rows():
     assert np.all(a_mat @ out.accel_safe[0] >= b_vec - 1e-6)
     plain = HOCBFShield().filter(cmd, pos, vel, points_w=[bar])
     assert plain.accel_safe[0, 2] < b_g  # without the row the correction goes down, into the ground
+
+
+def _all_margins(pts, p, v, a, cfg):
+    """HOCBF row margins 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2) of every point the shield
+    considers (point_filter distances, z_window heights), computed independently of the shield's selection."""
+    r = p - pts
+    d = np.linalg.norm(r, axis=1)
+    keep = (d >= cfg.point_filter[0]) & (d <= cfg.point_filter[1]) & (pts[:, 2] >= cfg.z_window[0])
+    r = r[keep]
+    return 2 * r @ a + 2 * v @ v + cfg.alpha1 * 2 * r @ v + cfg.alpha0 * (np.sum(r * r, axis=1) - cfg.r_safe**2)
+
+
+def _random_clouds(n, seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        p = np.array([0.0, 0.0, 1.5])
+        # A dense cloud ahead: a pole or wall patch plus scattered points, 0.6-6 m away.
+        pts = p + rng.uniform([0.6, -3.0, -1.0], [6.0, 3.0, 1.0], size=(int(rng.integers(50, 400)), 3))
+        v = np.array([rng.uniform(2.0, 9.0), rng.normal() * 1.5, rng.normal() * 0.3])
+        cmd = np.array([[9.81 + rng.normal() * 2, rng.normal() * 0.2, rng.uniform(-0.5, 0.1), 0.0]])
+        yield p, v, pts, cmd
+
+
+def test_active_set_answer_keeps_every_cloud_point_safe():
+    """Against every point of random clouds, not only the selected ones: the corrected acceleration satisfies all
+    rows whenever the hard QP was solved. With the paper's one-shot selection (active_set_iterations 0) some
+    answers break the row of a point that was not selected (the defect the iteration removes)."""
+    fixed, paper = HOCBFShield(), HOCBFShield(ShieldConfig(active_set_iterations=0))
+    solved = broken_paper = 0
+    for p, v, pts, cmd in _random_clouds(300, 11):
+        out = fixed.filter(cmd, p[None], v[None], points_w=[pts])
+        if out.active[0] and out.status[0] == STATUS_SOLVED:
+            solved += 1
+            m = _all_margins(pts, p, v, out.accel_safe[0], fixed.cfg)
+            assert m.min() >= -1e-5 * (1 + np.abs(m).max())
+        ref = paper.filter(cmd, p[None], v[None], points_w=[pts])
+        if ref.active[0] and ref.status[0] == STATUS_SOLVED:
+            broken_paper += _all_margins(pts, p, v, ref.accel_safe[0], paper.cfg).min() < -1e-3
+    assert solved >= 100
+    assert broken_paper >= 5
+
+
+def test_active_set_iterations_zero_is_the_one_shot_selection():
+    """The switch: with 0 iterations the shield solves exactly the K rows selected at the raw command."""
+    shield = HOCBFShield(ShieldConfig(active_set_iterations=0))
+    for p, v, pts, cmd in _random_clouds(40, 5):
+        out = shield.filter(cmd, p[None], v[None], points_w=[pts])
+        assert out.num_constraints[0] <= shield.cfg.max_constraints

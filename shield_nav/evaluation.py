@@ -39,8 +39,10 @@ import math
 import multiprocessing as mp
 import os
 import platform
+import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -530,10 +532,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
     try:
         mod = torch.jit.load(file, map_location="cpu")
     except Exception as err:
-        raise EvalError(
-            f"checkpoint {name!r}: {file!r} is not a TorchScript export ({type(err).__name__}); a training "
-            "checkpoint (model_<it>.pt) cannot be run directly: use the exported policy.onnx or policy.pt"
-        ) from None
+        raise EvalError(_torch_file_problem(file, name, err)) from None
     try:
         obs_dim, depth_shape = int(mod.obs_dim), tuple(int(v) for v in mod.depth_shape)
         num_layers, hidden = int(mod.num_layers), int(mod.hidden_size)
@@ -543,6 +542,28 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
     info = PolicyInfo(name, file, "torchscript", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
                       cfg_path, speeds, train_env)  # fmt: skip
     return LoadedPolicy(info, mod)
+
+
+def _torch_file_problem(file: str, name: str, err: Exception) -> str:
+    """Why a ``.pt`` file did not load as TorchScript: truncated/corrupt, a training checkpoint, or something else."""
+    import zipfile
+
+    size = os.path.getsize(file)
+    intact = False
+    if zipfile.is_zipfile(file):
+        try:
+            with zipfile.ZipFile(file) as z:
+                intact = z.testzip() is None
+        except (zipfile.BadZipFile, OSError, EOFError):
+            intact = False
+    if not intact:
+        return (f"checkpoint {name!r}: {file!r} ({size} bytes) is truncated or corrupt: not a complete torch archive "
+                "(an interrupted copy or save?); re-copy or re-export it")  # fmt: skip
+    with zipfile.ZipFile(file) as z:
+        if any(n.endswith("/constants.pkl") or n.endswith("/code/__torch__.py") for n in z.namelist()):
+            return f"checkpoint {name!r}: {file!r} is a TorchScript archive that failed to load: {err}"
+    return (f"checkpoint {name!r}: {file!r} is not a TorchScript export ({type(err).__name__}); a training "
+            "checkpoint (model_<it>.pt) cannot be run directly: use the exported policy.onnx or policy.pt")  # fmt: skip
 
 
 class LoadedTeacher:
@@ -1168,6 +1189,7 @@ def evaluate(
         s = res["summary"]
         bar.set_postfix_str(f"{res['row']} s{res['scene']} {res['speed']:g}m/s SR {100 * s['success_rate']:.0f}%")
 
+    previous_term = _sigterm_as_interrupt()
     try:
         if cfg.workers <= 1 or len(todo) <= 1:
             for u in todo:
@@ -1180,16 +1202,41 @@ def evaluate(
                 for fut in cf.as_completed(futures):
                     finish(fut.result())
             finally:
-                # On an interrupt or a failed unit: drop queued units, do not wait for the ones in flight.
-                pool.shutdown(wait=False, cancel_futures=True)
+                # On an interrupt or a failed unit: drop queued units and stop the ones in flight (no orphans).
+                _stop_pool(pool)
     except KeyboardInterrupt:
         bar.close()
         print(f"\ninterrupted: finished units are saved in {unit_dir}; re-run the same command to resume.")
         with contextlib.suppress(Exception):
             write_outputs(prep, out_dir, units)  # a partial table, marked as such in its header
         raise
+    finally:
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
     bar.close()
     return write_outputs(prep, out_dir, units)
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _sigterm_as_interrupt() -> Any:
+    """Handle SIGTERM like Ctrl-C (finished units kept, workers stopped); returns the previous handler or None."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
+def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
+    """Cancel queued units and terminate the worker processes (a unit in flight is lost, finished ones are on disk)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(timeout=10)
 
 
 def load_units(out_dir: str, units: list[UnitSpec]) -> list[dict]:

@@ -482,8 +482,8 @@ def make_runner(env: VecEnv, cfg: TrainConfig, log_dir: str | None, device: str)
 
 
 def read_checkpoint_infos(path: str | os.PathLike) -> dict:
-    """The ``infos`` of a checkpoint, migrated to the current format (raises ``ValueError`` if unknown)."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    """The ``infos`` of a checkpoint, migrated to the current format (``ValueError`` if unknown or unreadable)."""
+    ckpt = check_checkpoint(path, "checkpoint")
     infos = ckpt.get("infos") or {}
     version = infos.get("format_version")
     if version is None:
@@ -575,8 +575,42 @@ def _new_run_dir(cfg: TrainConfig) -> str:
     return path
 
 
+def check_device(device: str) -> None:
+    """Fail before any folder is made if ``device`` names CUDA that this torch build or machine does not have."""
+    if not device.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        build = "a CPU-only build" if torch.version.cuda is None else f"a CUDA {torch.version.cuda} build"
+        raise ConfigError(f"config key 'device': {device!r} asked, but no CUDA device is usable here (torch "
+                          f"{torch.__version__} is {build}); use --device cpu")  # fmt: skip
+    index = int(device.split(":", 1)[1]) if ":" in device else 0
+    if index >= torch.cuda.device_count():
+        raise ConfigError(f"config key 'device': {device!r} asked, but only {torch.cuda.device_count()} CUDA "
+                          "device(s) are visible")  # fmt: skip
+
+
+def check_checkpoint(path: str | os.PathLike, what: str) -> dict:
+    """Load a checkpoint on the CPU, or fail with a message that names it and the flag/key it came from."""
+    if not os.path.isfile(path):
+        raise ConfigError(f"{what}: no such file {str(path)!r}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # any reader error means the same thing to the user: unreadable
+        size = os.path.getsize(path)
+        raise ConfigError(f"{what}: {str(path)!r} ({size} bytes) is not a readable torch checkpoint, e.g. truncated "
+                          f"by an interrupted copy or save ({type(err).__name__}: {err})") from None  # fmt: skip
+    if not isinstance(ckpt, dict):
+        raise ConfigError(f"{what}: {str(path)!r} holds a {type(ckpt).__name__}, not a checkpoint dict")
+    return ckpt
+
+
 def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> None:
-    """Fail before any work if a file the run needs is missing (the teacher of a new distillation run)."""
+    """Fail before any work if a file the run needs is missing or unreadable, or the device is not there."""
+    check_device(cfg.device)
+    if resume is not None:
+        ckpt = check_checkpoint(resume, "--resume")
+        if "iter" not in ckpt:
+            raise ConfigError(f"--resume: {str(resume)!r} has no iteration count: not a model_<it>.pt of a run")
     distill = cfg.runner.class_name == "DistillationRunner"
     if distill and resume is None and not cfg.runner.expert.kind and not os.path.isfile(cfg.runner.teacher_checkpoint):
         raise ConfigError(
@@ -795,8 +829,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
     if args.log_dir is not None:
         overrides.append(f"log_root={args.log_dir}")
     if args.resume is not None:
-        if not os.path.isfile(args.resume):
-            raise ConfigError(f"--resume: '{args.resume}' is not a file")
+        check_checkpoint(args.resume, "--resume")
         if args.config is not None:
             print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
         stored = read_checkpoint_infos(args.resume)["config"]

@@ -327,3 +327,72 @@ def test_shipped_eval_configs_resolve(name):
     cfg = E.load_eval_config(os.path.join(ROOT, "configs", "eval", name))
     prep = E.prepare(cfg)
     assert set(prep.rows) == set(cfg.configurations) and not prep.missing
+
+
+def test_truncated_torchscript_export_is_called_truncated(tmp_path):
+    """A policy.pt cut short by an interrupted copy is reported as truncated, not as 'not a TorchScript export';
+    a training checkpoint given instead of an export keeps its own message."""
+    good = os.path.join(ROOT, "checkpoints", "oracle_distilled", "policy.pt")
+    cut = tmp_path / "policy.pt"
+    with open(good, "rb") as f:
+        cut.write_bytes(f.read()[:20000])
+    with pytest.raises(E.EvalError, match=r"\(20000 bytes\) is truncated or corrupt"):
+        E.load_policy(str(cut), "cut")
+    train_ckpt = os.path.join(ROOT, "checkpoints", "oracle_distilled", "model.pt")
+    with pytest.raises(E.EvalError, match="is not a TorchScript export"):
+        E.load_policy(train_ckpt, "ckpt")
+    assert E.load_policy(good, "good").info.obs_dim > 0
+
+
+def _children(pid):
+    kids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                kids.append(int(entry))
+    return kids
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads worker processes from /proc")
+def test_sigterm_stops_the_workers_and_keeps_finished_units(tmp_path):
+    """SIGTERM is handled like Ctrl-C: the worker processes are terminated (no orphans burning CPU) and every
+    finished unit stays on disk for a resume."""
+    import signal
+    import time
+
+    out = tmp_path / "ev"
+    cmd = [sys.executable, "eval.py", "--config", "configs/eval/expert.yaml", "--configurations", "goal_seeking",
+           "--scenes", "ablation:0,1,2,3,4,5,6,7", "--speeds", "9,7,5,3", "--trials", "2", "--workers", "2",
+           "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    units = out / "units"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (units.is_dir() and any(units.iterdir())):
+        assert proc.poll() is None, proc.stdout.read()
+        time.sleep(0.2)
+    assert units.is_dir() and any(units.iterdir()), "no unit finished in time"
+    workers = _children(proc.pid)
+    assert workers, "expected worker processes"
+    proc.send_signal(signal.SIGTERM)
+    text, _ = proc.communicate(timeout=60)
+    assert proc.returncode != 0
+    assert "interrupted: finished units are saved" in text
+    time.sleep(0.5)
+    assert not [w for w in workers if _alive(w)], "worker processes outlived eval.py"
+    saved = list(units.iterdir())
+    assert 1 <= len(saved) < 32
+    for f in saved:
+        assert json.loads(f.read_text())["trials"]

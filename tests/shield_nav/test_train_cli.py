@@ -266,3 +266,27 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeyp
     stem = os.path.join(str(tmp_path), cfg.experiment_name, f"2026-01-02_03-04-05_{cfg.name}")
     assert dirs == [stem, stem + "_2", stem + "_3"]
     assert all(os.path.isdir(os.path.join(d, "params")) for d in dirs)
+
+
+def test_truncated_resume_checkpoint_fails_fast_by_name(tmp_path):
+    """A checkpoint cut short by an interrupted copy: a clear error naming --resume, no traceback, no run folder."""
+    good = os.path.join(REPO, "checkpoints", "oracle_distilled", "model.pt")
+    cut = tmp_path / "model_10.pt"
+    with open(good, "rb") as f:
+        cut.write_bytes(f.read()[:5000])
+    root = tmp_path / "logs"
+    res = run_train([*TINY, "--log-dir", str(root), "--resume", str(cut)], timeout=120)
+    assert res.returncode == 2
+    assert "--resume" in res.stderr and "not a readable torch checkpoint" in res.stderr and "5000 bytes" in res.stderr
+    assert "Traceback" not in res.stderr
+    assert not root.exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_on_a_machine_without_it_fails_before_any_folder(tmp_path):
+    root = tmp_path / "logs"
+    res = run_train([*TINY, "--log-dir", str(root), "--device", "cuda"], timeout=120)
+    assert res.returncode == 2
+    assert "config key 'device'" in res.stderr and "--device cpu" in res.stderr
+    assert "Traceback" not in res.stderr and "AssertionError" not in res.stderr
+    assert not root.exists()

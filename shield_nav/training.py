@@ -26,6 +26,7 @@ import dataclasses
 import datetime
 import glob
 import inspect
+import math
 import os
 import signal
 import sys
@@ -651,6 +652,34 @@ def _restore_levels(env: Any, levels: list[int] | None) -> None:
         print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
 
 
+def episode_means(ep_extras: list[dict], keys: tuple[str, ...]) -> dict[str, tuple[float, int]]:
+    """Mean and count of each key over the episodes that ended this iteration (rsl-rl's ``ep_extras``)."""
+    out = {}
+    for key in keys:
+        vals = [torch.as_tensor(e[key], dtype=torch.float64).reshape(-1) for e in ep_extras if key in e]
+        flat = torch.cat(vals) if vals else torch.zeros(0, dtype=torch.float64)
+        out[key] = (float(flat.mean()) if flat.numel() else math.nan, int(flat.numel()))
+    return out
+
+
+def progress_line(logger: Any, it: int, total_it: int, extras: dict[str, tuple[float, int]]) -> str:
+    """One compact line per iteration: iteration, env-steps/s, success, curriculum level, elapsed and ETA."""
+    done = it + 1
+    fps = logger.tot_timesteps / logger.tot_time if logger.tot_time > 0 else 0.0
+    eta = logger.tot_time / max(done, 1) * max(total_it - done, 0)
+    succ, n_ep = extras.get("episode/success", (math.nan, 0))
+    level, _ = extras.get("curriculum/mean_level", (math.nan, 0))
+
+    def hms(t: float) -> str:
+        t = int(t)
+        return f"{t // 3600}:{t // 60 % 60:02d}:{t % 60:02d}"
+
+    succ_s = f"{100 * succ:5.1f} % of {n_ep:3d} ep" if n_ep else "   - (no episode ended)"
+    level_s = f"{level:5.2f}" if math.isfinite(level) else "  -  "
+    return (f"[train] it {done:>{len(str(total_it))}}/{total_it} | {fps:7.0f} env-steps/s | success {succ_s} | "
+            f"level {level_s} | {hms(logger.tot_time)} elapsed, ETA {hms(eta)}")  # fmt: skip
+
+
 def train(
     cfg: TrainConfig,
     resume: str | os.PathLike | None = None,
@@ -744,7 +773,10 @@ def train(
         # spans the whole run, so count from iteration 0 (else a resumed run prints an ETA of days).
         if "start_it" in kwargs:
             kwargs["start_it"] = 0
+        extras = episode_means(runner.logger.ep_extras, ("episode/success", "curriculum/mean_level"))
         log_fn(*args, **kwargs)
+        print(progress_line(runner.logger, kwargs.get("it", runner.current_learning_iteration),
+                            kwargs.get("total_it", cfg.max_iterations), extras), flush=True)  # fmt: skip
         if actor_params and runner.current_learning_iteration + 1 >= warmup_end:
             for p in actor_params:
                 p.requires_grad_(True)

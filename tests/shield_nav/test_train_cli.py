@@ -290,3 +290,22 @@ def test_cuda_on_a_machine_without_it_fails_before_any_folder(tmp_path):
     assert "config key 'device'" in res.stderr and "--device cpu" in res.stderr
     assert "Traceback" not in res.stderr and "AssertionError" not in res.stderr
     assert not root.exists()
+
+
+def test_progress_line_by_hand():
+    from types import SimpleNamespace
+
+    from shield_nav.training import episode_means, progress_line
+
+    extras = [{"episode/success": torch.tensor([1.0, 0.0]), "curriculum/mean_level": torch.tensor(3.0)},
+              {"episode/success": torch.tensor(1.0), "curriculum/mean_level": torch.tensor(5.0)}, {}]  # fmt: skip
+    means = episode_means(extras, ("episode/success", "curriculum/mean_level"))
+    assert means["episode/success"] == (pytest.approx(2 / 3), 3)
+    assert means["curriculum/mean_level"] == (pytest.approx(4.0), 2)
+    # 10 iterations done of 40 in 100 s with 30,720 steps: 307 steps/s, ETA 30 x 10 s = 0:05:00.
+    logger = SimpleNamespace(tot_timesteps=30720, tot_time=100.0)
+    line = progress_line(logger, 9, 40, means)
+    assert line == ("[train] it 10/40 |     307 env-steps/s | success  66.7 % of   3 ep | level  4.00 | "
+                    "0:01:40 elapsed, ETA 0:05:00")
+    empty = progress_line(logger, 9, 40, episode_means([], ("episode/success",)))
+    assert "no episode ended" in empty and "level   -  " in empty

@@ -102,6 +102,11 @@ def _crashes(
 ) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray]]]:
     """Per unit of an eval folder: ``(row, speed)``, its scene (``None`` without crashes), the crashed trajectories."""
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
+    cfg = None
+    if os.path.isfile(os.path.join(out_dir, "config.yaml")):
+        from shield_nav.evaluation import load_eval_config
+
+        cfg = load_eval_config(os.path.join(out_dir, "config.yaml"))  # its env overrides may set scenes.seed
     if not files:
         raise FileNotFoundError(f"no unit files under {os.path.join(out_dir, 'units')!r}: not an eval.py output")
     for path in files:
@@ -113,8 +118,14 @@ def _crashes(
         for t in hits:
             if not t.get("traj"):
                 raise ValueError(f"{path}: trial {t.get('trial')} has no trajectory (trajectory_every too large?)")
-        # eval.py flies the family's default seed
-        scene = make_scene(unit["family"], int(unit["scene"])) if hits else None
+        if not hits:
+            scene = None
+        elif cfg is not None:
+            from shield_nav.evaluation import flown_scene
+
+            scene = flown_scene(cfg, unit["family"], int(unit["scene"]))
+        else:  # an output folder without its config: the family's default seed
+            scene = make_scene(unit["family"], int(unit["scene"]))
         yield (unit["row"], float(unit["speed"])), scene, [np.asarray(t["traj"]) for t in hits]
 
 

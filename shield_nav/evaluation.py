@@ -810,6 +810,16 @@ def nav_config(
     return nav
 
 
+def flown_scene(cfg: EvalConfig, family: str, index: int) -> Any:
+    """The scene a unit of ``cfg`` flies: ``family``/``index`` with the seed of its env overrides, if any.
+
+    Trial sampling, figures, videos and the collision analysis use it, so they show the scene that was flown (an
+    eval with ``scenes.seed`` in ``env_overrides``), not the family's default.
+    """
+    seed = nav_config(cfg, family, index, cfg.speeds[0], 1).scenes.seed
+    return make_scene(family, index, seed)
+
+
 _POLICY_CACHE: dict[str, LoadedPolicy] = {}
 
 
@@ -949,7 +959,7 @@ def run_unit(spec: UnitSpec) -> dict:
 
     cfg = _from_dict(spec.cfg)
     t0 = time.perf_counter()
-    scene = make_scene(spec.family, spec.index)
+    scene = flown_scene(cfg, spec.family, spec.index)
     n_all = cfg.trials_per_scene
     seeds = [trial_seed(cfg.seed, spec.family, spec.index, spec.speed, j) for j in range(n_all)]
     records: list[dict] = []
@@ -1509,7 +1519,7 @@ def record_videos(prep: Prepared, out_dir: str, fps: int = 25, size: tuple[int, 
             continue
         env = NavigationEnv(config=nav_config(cfg, spec.family, idx, speed, 1, spec.policy_env))
         need = env.cfg.vehicle.airframe.collision_radius + 0.4
-        trial = sample_trial(make_scene(spec.family, idx), env.field_stack, 0,
+        trial = sample_trial(env.scenes[0], env.field_stack, 0,
                              trial_seed(cfg.seed, spec.family, idx, speed, 0), need)  # fmt: skip
         trial["trial"] = 0
         base = os.path.join(out_dir, "videos", f"{spec.key}__trial0")
@@ -1531,8 +1541,8 @@ def record_videos(prep: Prepared, out_dir: str, fps: int = 25, size: tuple[int, 
         else:
             from envs.fields import build_fields
 
-            fields = build_fields(make_scene(spec.family, idx), resolution=env.cfg.scenes.field_resolution,
+            fields = build_fields(env.scenes[0], resolution=env.cfg.scenes.field_resolution,
                                   vehicle_radius=env.cfg.vehicle.airframe.collision_radius)  # fmt: skip
-            paths.append(plots.animate_topdown(make_scene(spec.family, idx), fields, record, base + ".gif"))
+            paths.append(plots.animate_topdown(env.scenes[0], fields, record, base + ".gif"))
         print(f"video: {paths[-1]} ({spec.row_name}, outcome {record['outcome']})", flush=True)
     return paths

@@ -396,3 +396,17 @@ def test_sigterm_stops_the_workers_and_keeps_finished_units(tmp_path):
     assert 1 <= len(saved) < 32
     for f in saved:
         assert json.loads(f.read_text())["trials"]
+
+
+def test_figures_and_trials_use_the_scene_seed_that_was_flown():
+    """With scenes.seed in env_overrides, the scene used for trials, figures and videos is that seed's scene."""
+    from envs.scenes import make_scene
+
+    cfg = E.load_eval_config(os.path.join(ROOT, "configs", "eval", "expert.yaml"))
+    default = E.flown_scene(cfg, "ablation", 2)
+    cfg.env_overrides = [*cfg.env_overrides, "scenes.seed=1234567"]
+    seeded = E.flown_scene(cfg, "ablation", 2)
+    ref = make_scene("ablation", 2, 1234567)
+    key = lambda sc: [p.to_mjcf() for p in sc.primitives]  # noqa: E731
+    assert key(seeded) == key(ref)
+    assert key(seeded) != key(default)

@@ -434,14 +434,23 @@ def _find_train_config(policy_file: str) -> str | None:
     return None
 
 
+def _read_policy_config(path: str, lost: str) -> Any:
+    """A policy's resolved training config, or None with a warning that names the file and what is lost."""
+    try:
+        with open(path) as f:
+            return yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as err:
+        warnings.warn(f"cannot read the policy's training config {path!r} ({type(err).__name__}: {err}); "
+                      f"evaluating without {lost}", stacklevel=3)  # fmt: skip
+        return None
+
+
 def _speeds_from_config(path: str | None) -> tuple[float, float] | None:
     """Target-speed range from a resolved config: the first ``episode`` mapping with target_speeds/speed_range."""
     if path is None:
         return None
-    try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
-    except Exception:
+    data = _read_policy_config(path, "the out-of-range speed flag")
+    if data is None:
         return None
     stack = [data]
     while stack:
@@ -468,10 +477,8 @@ def _env_from_config(path: str | None) -> dict | None:
     """The :data:`POLICY_ENV_SECTIONS` of the ``env`` mapping of a resolved training config (TrainConfig layout)."""
     if path is None:
         return None
-    try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
-    except Exception:
+    data = _read_policy_config(path, "its training env's action, camera and vehicle settings")
+    if data is None:
         return None
     env = data.get("env") if isinstance(data, dict) else None
     if not isinstance(env, dict):

@@ -391,7 +391,44 @@ def load_train_config(
     Raises:
         ConfigError: Naming the dotted key of the first unknown key or bad value, before any work.
     """
-    return load_config(TrainConfig, files=files, overrides=overrides, base=base)
+    cfg = load_config(TrainConfig, files=files, overrides=overrides, base=base)
+    check_algorithm_keys(cfg)
+    return cfg
+
+
+def _constructor_names(class_name: str) -> set[str] | None:
+    """Parameter names ``class_name``'s constructor chain takes (None: it takes any keyword)."""
+    from rsl_rl.utils import resolve_callable
+
+    names: set[str] = set()
+    for klass in resolve_callable(class_name).__mro__:
+        if "__init__" not in vars(klass):
+            continue
+        params = inspect.signature(vars(klass)["__init__"]).parameters
+        names.update(params)
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            return names
+    return None
+
+
+def check_algorithm_keys(cfg: TrainConfig) -> None:
+    """An algorithm key set away from its default that the chosen algorithm does not take is an error.
+
+    ``runner.algorithm`` holds the parameters of every algorithm (PPO, distillation, multi-hypothesis, anchored);
+    the runner passes each class only what its constructor takes, so without this check e.g.
+    ``--set runner.algorithm.wta_epsilon=0.9`` on plain PPO would train and drop the key without a word.
+    """
+    algo = cfg.runner.algorithm
+    names = _constructor_names(algo.class_name)
+    if names is None:
+        return
+    defaults = AlgorithmConfig()
+    for f in dataclasses.fields(AlgorithmConfig):
+        if f.name == "class_name" or f.name in names:
+            continue
+        if getattr(algo, f.name) != getattr(defaults, f.name):
+            raise ConfigError(f"config key 'runner.algorithm.{f.name}': {algo.class_name} does not take it (set to "
+                              f"{getattr(algo, f.name)!r}); it applies to another algorithm class")  # fmt: skip
 
 
 def _accepted(class_name: str, kwargs: dict) -> dict:

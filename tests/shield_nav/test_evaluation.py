@@ -410,3 +410,12 @@ def test_figures_and_trials_use_the_scene_seed_that_was_flown():
     key = lambda sc: [p.to_mjcf() for p in sc.primitives]  # noqa: E731
     assert key(seeded) == key(ref)
     assert key(seeded) != key(default)
+
+
+def test_unreadable_policy_config_warns_with_its_name(tmp_path):
+    bad = tmp_path / "config.yaml"
+    bad.write_text("env: {action: [unclosed\n")
+    with pytest.warns(UserWarning, match=r"config\.yaml.*out-of-range speed flag"):
+        assert E._speeds_from_config(str(bad)) is None
+    with pytest.warns(UserWarning, match=r"config\.yaml.*action, camera and vehicle"):
+        assert E._env_from_config(str(bad)) is None

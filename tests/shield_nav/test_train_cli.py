@@ -309,3 +309,20 @@ def test_progress_line_by_hand():
                     "0:01:40 elapsed, ETA 0:05:00")
     empty = progress_line(logger, 9, 40, episode_means([], ("episode/success",)))
     assert "no episode ended" in empty and "level   -  " in empty
+
+
+def test_inapplicable_algorithm_key_fails_by_name():
+    """A key of another algorithm set on PPO is an error naming it, not a silently dropped value; the same key on
+    the algorithm that takes it loads, and leaving it at its default on PPO is not an error."""
+    from envs.config import ConfigError
+    from shield_nav.training import load_train_config
+
+    with pytest.raises(ConfigError, match=r"runner\.algorithm\.wta_epsilon': PPO does not take it"):
+        load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"),
+                          overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
+    mh = load_train_config(os.path.join(REPO, "configs/train/distill_oracle_shapes_3ms_mh.yaml"),
+                           overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
+    assert mh.runner.algorithm.wta_epsilon == 0.9
+    load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"))
+    res = run_train([*TINY, "--set", "runner.algorithm.replay_rollouts=4"], timeout=120)
+    assert res.returncode == 2 and "runner.algorithm.replay_rollouts" in res.stderr

@@ -42,6 +42,9 @@ class ExpertConfig:
 
     field_radius: float = 0.5
     """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""
+    flat_slope: float = 0.3
+    """Below this largest |dPhi/dx| at the vehicle the inflated field is taken as flat (the inflation closes the way
+    to the goal) and the env's own field is descended instead."""
     horizon: float = 14.0
     """Length of the traced path [m] (longer than the braking distance at the highest speed)."""
     ds: float = 0.35
@@ -78,6 +81,15 @@ class ExpertConfig:
     """Pure-pursuit look-ahead time [s]."""
     lookahead_min: float = 1.0
     """Pure-pursuit look-ahead floor [m]."""
+    tracker: str = "chord"
+    """Reference direction: ``chord`` (pure pursuit: towards the path point ``max(lookahead_min, |v| lookahead_s)``
+    ahead; cuts inside bends by the chord's sagitta) or ``tangent`` (the path's direction between the reference
+    sample and ``tangent_span`` samples after it, plus ``k_x`` times the offset of the reference sample from the
+    position predicted ``lag_s`` ahead)."""
+    tangent_span: int = 4
+    """Samples over which the ``tangent`` tracker measures the path direction."""
+    k_x: float = 2.0
+    """Cross-track gain of the ``tangent`` tracker [1/s]."""
     k_v: float = 4.0
     """Velocity-error gain [1/s]."""
     ff_gain: float = 0.5
@@ -90,7 +102,7 @@ class ExpertConfig:
     def validate(self, prefix: str = "") -> None:
         """Positive lengths, gains and limits, naming the key."""
         for name in ("horizon", "ds", "fd_step", "d_pref", "lat_accel", "brake_accel", "k_v", "lookahead_min",
-                     "ff_window"):
+                     "flat_slope", "ff_window"):
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack"):  # fmt: skip
@@ -101,6 +113,14 @@ class ExpertConfig:
         require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
                 "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip
         require(0 < self.max_tilt_deg < 60, f"{prefix}max_tilt_deg", "must be in (0, 60)")
+        require(self.tracker in TRACKERS, f"{prefix}tracker", f"unknown tracker {self.tracker!r}; expected one of "
+                f"{TRACKERS}")  # fmt: skip
+        require(self.tangent_span >= 1, f"{prefix}tangent_span", f"must be >= 1, got {self.tangent_span}")
+        require(self.k_x >= 0, f"{prefix}k_x", f"must be >= 0, got {self.k_x}")
+
+
+TRACKERS = ("chord", "tangent")
+"""Reference directions of the tracker (:attr:`ExpertConfig.tracker`)."""
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -154,6 +174,8 @@ class PlannerController:
         self.ec: ExpertConfig = cfg.expert
         self._own: tuple | None = None
         self.last: dict[str, np.ndarray] = {}
+        self.fallback = np.zeros(0, dtype=bool)
+        """(N,) bool of the last trace: envs that descended the env's own field (the inflated one was flat)."""
 
     def reset(self, env: Any) -> None:
         """Nothing to reset (stateless); the planning fields are built on first use and kept per env."""
@@ -177,11 +199,25 @@ class PlannerController:
         self._own = (env, stack, anchors)
         return stack, anchors
 
-    def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray) -> np.ndarray:
-        stack, anchors = self._fields(env)
+    def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray, own: bool = True) -> np.ndarray:
+        """Phi at ``pts`` of the inflated fields (``own``) or of the env's (inflated by the vehicle radius only)."""
+        stack, anchors = self._fields(env) if own else (env.field_stack, env.anchor_fields)
         if anchors is not None:
             return anchors.geodesic(ids, anchor, pts)
         return stack.geodesic(ids, pts)
+
+    def _phi7(self, env: Any, fallback: np.ndarray, ids7: np.ndarray, anchor7: np.ndarray,
+              pts: np.ndarray) -> np.ndarray:  # fmt: skip
+        """Phi at 7 points per env (N*7, 3) -> (N, 7), from the env's own fields where ``fallback`` (N,) is set."""
+        n = len(fallback)
+        if not fallback.any():
+            return self._phi(env, ids7, anchor7, pts).reshape(n, 7)
+        out = np.empty((n, 7))
+        m7 = np.repeat(fallback, 7)
+        if (~fallback).any():
+            out[~fallback] = self._phi(env, ids7[~m7], anchor7[~m7], pts[~m7]).reshape(-1, 7)
+        out[fallback] = self._phi(env, ids7[m7], anchor7[m7], pts[m7], own=False).reshape(-1, 7)
+        return out
 
     # ------------------------------------------------------------------------------------------------ planning
     def trace(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -198,6 +234,13 @@ class PlannerController:
         clear = np.empty((n, k_steps + 1))
         x = env.local_pos.astype(np.float64).copy()
         prev: np.ndarray | None = None
+        # Where the inflation closes every way to the goal, the inflated Phi is flat (capped at its unreachable
+        # value): those envs descend the env's own field instead, which keeps only the vehicle radius.
+        pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
+        phi0 = self._phi(env, ids6, anchor6, pts).reshape(n, 7)
+        slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
+        fallback = slope < ec.flat_slope
+        self.fallback = fallback
         for k in range(k_steps + 1):
             path[:, k] = x
             d, grad_d, _ = env.field_stack.query(ids, x, geodesic=False)
@@ -205,7 +248,7 @@ class PlannerController:
             if k == k_steps:
                 break
             pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
-            phi = self._phi(env, ids6, anchor6, pts).reshape(n, 7)
+            phi = self._phi7(env, fallback, ids6, anchor6, pts)
             u = -_unit(phi[:, 1:4] - phi[:, 4:7])
             g = _unit(grad_d)
             g_perp = g - np.einsum("nc,nc->n", g, u)[:, None] * u
@@ -233,7 +276,8 @@ class PlannerController:
         smooth = (cum[:, k + w + 1] - cum[:, k - w]) / (2 * w + 1)[None, :, None]
         ids = np.repeat(env.scene_id_buf, kp1)
         d = env.field_stack.esdf(ids, smooth.reshape(-1, 3)).reshape(n, kp1)
-        keep = d >= ec.field_radius - ec.smooth_slack
+        radius = np.where(self.fallback, env.cfg.vehicle.airframe.collision_radius, ec.field_radius)
+        keep = d >= (radius - ec.smooth_slack)[:, None]
         return np.where(keep[..., None], smooth, path), np.where(keep, d, clear)
 
     def plan(self, env: Any) -> dict[str, np.ndarray]:
@@ -265,8 +309,13 @@ class PlannerController:
         k_la = np.clip(np.round(np.maximum(ec.lookahead_min, speed * ec.lookahead_s) / ec.ds).astype(int),
                        k_ref + 1, kp1 - 1)  # fmt: skip
         v_r = v_prof[rows, k_ref]
-        chord = _unit(path[rows, k_la] - pos)
-        v_ref = v_r[:, None] * chord
+        if ec.tracker == "tangent":
+            k_b = np.minimum(k_ref + ec.tangent_span, kp1 - 1)
+            chord = _unit(path[rows, k_b] - path[rows, k_ref])
+            v_ref = v_r[:, None] * chord + ec.k_x * (path[rows, k_ref] - (pos + vel * ec.lag_s))
+        else:
+            chord = _unit(path[rows, k_la] - pos)
+            v_ref = v_r[:, None] * chord
         # Feedforward d(v t)/dt = v d(v t)/ds at the reference sample.
         k_ff = np.minimum(k_ref + ec.ff_window, kp1 - 2)
         vt0 = v_prof[rows, k_ref, None] * tan[rows, k_ref]

@@ -103,3 +103,38 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})
+
+
+def test_flat_inflated_field_falls_back_to_the_envs_own_field():
+    """Inflated so much that no way to the goal is left, the inflated Phi is flat (its unreachable cap): the expert
+    then descends the env's own field, and its path still makes progress on it."""
+    # Benchmark scene 14 (a maze of boxes): 0.5 m of inflation closes every corridor to the goal region.
+    env = NavigationEnv(num_envs=4, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
+                                       "curriculum.enabled": False})  # fmt: skip
+    env.reset(seed=2)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5)))
+    plan = ctrl.plan(env)
+    assert ctrl.fallback.all()
+    path = plan["path"]
+    ids = np.repeat(env.scene_id_buf, path.shape[1])
+    phi = env.anchor_fields.geodesic(ids, np.repeat(env.anchor_buf, path.shape[1]), path.reshape(-1, 3)).reshape(4, -1)
+    assert np.all(phi[:, -1] < phi[:, 0] - 0.7 * ctrl.ec.horizon)
+    normal = PlannerController(BaselineConfig())
+    normal.plan(_env(n=4))  # training scenes 0-1: open enough for 0.5 m
+    assert not normal.fallback.any()
+
+
+def test_tangent_tracker_follows_the_path_direction_by_hand():
+    """tracker: tangent: v_ref = v_r unit(P[k+span] - P[k]) + k_x (P[k] - (p + v lag)), with k = round(|v| lag / ds)."""
+    env = _env(n=4, speed=5.0)
+    ec = ExpertConfig(tracker="tangent", tangent_span=2, k_x=2.0, ff_gain=0.0)
+    ctrl = PlannerController(BaselineConfig(expert=ec))
+    ctrl.commands(env)
+    last = ctrl.last
+    pos, vel = env.local_pos, env.vehicles.vel_w
+    k = np.clip(np.round(np.linalg.norm(vel, axis=1) * ec.lag_s / ec.ds).astype(int), 0, last["path"].shape[1] - 3)
+    rows = np.arange(4)
+    p0, p1 = last["path"][rows, k], last["path"][rows, k + 2]
+    expect = last["speed"][rows, k, None] * (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
+    expect += 2.0 * (p0 - (pos + vel * ec.lag_s))
+    np.testing.assert_allclose(last["v_ref"], expect, rtol=1e-9, atol=1e-12)

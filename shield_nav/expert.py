@@ -81,12 +81,12 @@ class ExpertConfig:
     """Pure-pursuit look-ahead time [s]."""
     lookahead_min: float = 1.0
     """Pure-pursuit look-ahead floor [m]."""
-    tracker: str = "chord"
+    tracker: str = "tangent"
     """Reference direction: ``chord`` (pure pursuit: towards the path point ``max(lookahead_min, |v| lookahead_s)``
     ahead; cuts inside bends by the chord's sagitta) or ``tangent`` (the path's direction between the reference
     sample and ``tangent_span`` samples after it, plus ``k_x`` times the offset of the reference sample from the
     position predicted ``lag_s`` ahead)."""
-    tangent_span: int = 4
+    tangent_span: int = 2
     """Samples over which the ``tangent`` tracker measures the path direction."""
     k_x: float = 2.0
     """Cross-track gain of the ``tangent`` tracker [1/s]."""

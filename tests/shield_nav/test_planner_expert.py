@@ -79,7 +79,7 @@ def test_command_at_rest_on_a_straight_path_accelerates_along_it():
     """With v = 0 and no feedforward, a = k_v v_ref: the thrust vector is g e3 + k_v v_r chord (before limits)."""
     env = _env(n=4, speed=3.0)
     env.vehicles.vel_w[:] = 0.0
-    cfg = BaselineConfig(expert=ExpertConfig(ff_gain=0.0, k_v=1.0, max_tilt_deg=59.0))
+    cfg = BaselineConfig(expert=ExpertConfig(tracker="chord", ff_gain=0.0, k_v=1.0, max_tilt_deg=59.0))
     ctrl = PlannerController(cfg)
     cmd = ctrl.commands(env)
     v_ref = ctrl.last["v_ref"]

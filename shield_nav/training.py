@@ -391,9 +391,7 @@ def load_train_config(
     Raises:
         ConfigError: Naming the dotted key of the first unknown key or bad value, before any work.
     """
-    cfg = load_config(TrainConfig, files=files, overrides=overrides, base=base)
-    check_algorithm_keys(cfg)
-    return cfg
+    return load_config(TrainConfig, files=files, overrides=overrides, base=base)
 
 
 def _constructor_names(class_name: str) -> set[str] | None:
@@ -411,7 +409,7 @@ def _constructor_names(class_name: str) -> set[str] | None:
     return None
 
 
-def check_algorithm_keys(cfg: TrainConfig) -> None:
+def check_algorithm_keys(cfg: TrainConfig, keys: Sequence[str] | None = None) -> None:
     """An algorithm key set away from its default that the chosen algorithm does not take is an error.
 
     ``runner.algorithm`` holds the parameters of every algorithm (PPO, distillation, multi-hypothesis, anchored);
@@ -424,9 +422,9 @@ def check_algorithm_keys(cfg: TrainConfig) -> None:
         return
     defaults = AlgorithmConfig()
     for f in dataclasses.fields(AlgorithmConfig):
-        if f.name == "class_name" or f.name in names:
+        if f.name == "class_name" or f.name in names or (keys is not None and f.name not in keys):
             continue
-        if getattr(algo, f.name) != getattr(defaults, f.name):
+        if keys is not None or getattr(algo, f.name) != getattr(defaults, f.name):
             raise ConfigError(f"config key 'runner.algorithm.{f.name}': {algo.class_name} does not take it (set to "
                               f"{getattr(algo, f.name)!r}); it applies to another algorithm class")  # fmt: skip
 
@@ -902,10 +900,16 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         if args.config is not None:
             print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
         stored = read_checkpoint_infos(args.resume)["config"]
-        return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
+        cfg = load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
+        # The stored config is what ran; only the keys given now are checked against the algorithm.
+        given = [o.split("=", 1)[0].removeprefix("runner.algorithm.") for o in overrides
+                 if o.startswith("runner.algorithm.")]  # fmt: skip
+        check_algorithm_keys(cfg, given)
+        return cfg
     if args.config is None:
         raise ConfigError("--config is required (or --resume)")
     cfg = load_train_config(files=args.config, overrides=overrides)
+    check_algorithm_keys(cfg)
     if cfg.runner.algorithm.lr_schedule_iterations == 0:
         # Frozen into the stored config, so a resume that extends --max-iterations keeps the schedule it started.
         cfg.runner.algorithm.lr_schedule_iterations = cfg.max_iterations

@@ -313,16 +313,21 @@ def test_progress_line_by_hand():
 
 def test_inapplicable_algorithm_key_fails_by_name():
     """A key of another algorithm set on PPO is an error naming it, not a silently dropped value; the same key on
-    the algorithm that takes it loads, and leaving it at its default on PPO is not an error."""
+    the algorithm that takes it passes, and leaving it at its default on PPO is not an error."""
     from envs.config import ConfigError
-    from shield_nav.training import load_train_config
+    from shield_nav.training import check_algorithm_keys, load_train_config
 
+    ppo = load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"),
+                            overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
     with pytest.raises(ConfigError, match=r"runner\.algorithm\.wta_epsilon': PPO does not take it"):
-        load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"),
-                          overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
+        check_algorithm_keys(ppo)
     mh = load_train_config(os.path.join(REPO, "configs/train/distill_oracle_shapes_3ms_mh.yaml"),
                            overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
-    assert mh.runner.algorithm.wta_epsilon == 0.9
-    load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"))
+    check_algorithm_keys(mh)
+    check_algorithm_keys(load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml")))
+    # On --resume only the keys given now are checked (the stored config is what ran).
+    with pytest.raises(ConfigError, match="runner.algorithm.replay_rollouts"):
+        check_algorithm_keys(load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml")),
+                             ["replay_rollouts"])  # fmt: skip
     res = run_train([*TINY, "--set", "runner.algorithm.replay_rollouts=4"], timeout=120)
     assert res.returncode == 2 and "runner.algorithm.replay_rollouts" in res.stderr

@@ -25,8 +25,8 @@ def main(argv: list[str]) -> dict:
     p.add_argument("--speed", type=float, default=7.0)
     args = p.parse_args(argv)
     env = NavigationEnv(num_envs=args.num_envs, **{
-        "scenes.family": "ablation", "render_depth": False, "curriculum.enabled": False,
-        "episode.target_speeds": [args.speed], "episode.speed_range": []})  # fmt: skip
+        "scenes.family": "ablation", "scenes.indices": list(range(8)), "render_depth": False,
+        "curriculum.enabled": False, "episode.target_speeds": [args.speed], "episode.speed_range": []})  # fmt: skip
     env.reset(seed=0)
     planner = PlannerController(BaselineConfig())
     oracle = OracleController(BaselineConfig(oracle=OracleConfig(episode_goal=True, field_radius=0.5)))

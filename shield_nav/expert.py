@@ -247,8 +247,11 @@ class PlannerController:
             clear[:, k] = d
             if k == k_steps:
                 break
-            pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
-            phi = self._phi7(env, fallback, ids6, anchor6, pts)
+            if k == 0 and not fallback.any():
+                phi = phi0  # the same 7 points were just queried to choose the field
+            else:
+                pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
+                phi = self._phi7(env, fallback, ids6, anchor6, pts)
             u = -_unit(phi[:, 1:4] - phi[:, 4:7])
             g = _unit(grad_d)
             g_perp = g - np.einsum("nc,nc->n", g, u)[:, None] * u

@@ -395,7 +395,11 @@ def load_train_config(
 
 
 def _constructor_names(class_name: str) -> set[str] | None:
-    """Parameter names ``class_name``'s constructor chain takes (None: it takes any keyword)."""
+    """Parameter names ``class_name``'s constructor chain takes (None: it takes any keyword).
+
+    A subclass that forwards ``**kwargs`` to its parent (shield_nav.anchored.AnchoredPPO -> PPO) takes what the first
+    class up its MRO without ``**kwargs`` takes; if every ``__init__`` takes ``**kwargs``, anything is passed on.
+    """
     from rsl_rl.utils import resolve_callable
 
     names: set[str] = set()
@@ -431,19 +435,8 @@ def check_algorithm_keys(cfg: TrainConfig, keys: Sequence[str] | None = None) ->
 
 def _accepted(class_name: str, kwargs: dict) -> dict:
     """``kwargs`` restricted to what ``class_name``'s constructor takes (all of them if it takes ``**kwargs``)."""
-    from rsl_rl.utils import resolve_callable
-
-    # A subclass that forwards **kwargs to its parent (shield_nav.anchored.AnchoredPPO -> PPO) takes what the first
-    # class up its MRO without **kwargs takes; if every __init__ takes **kwargs, everything is passed on.
-    names: set[str] = set()
-    for klass in resolve_callable(class_name).__mro__:
-        if "__init__" not in vars(klass):
-            continue
-        params = inspect.signature(vars(klass)["__init__"]).parameters
-        names.update(params)
-        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-            break
-    else:
+    names = _constructor_names(class_name)
+    if names is None:
         return kwargs
     return {k: v for k, v in kwargs.items() if k in names or k == "class_name"}
 

@@ -230,14 +230,13 @@ class OracleController(Controller):
             return env.field_stack, getattr(env, "anchor_fields", None)
         own = getattr(self, "_own", None)
         if own is None or own[0] is not env:
-            from envs.fields import FieldStack, build_fields
+            from envs.fields import scene_field_stack
             from envs.fields.anchors import GoalAnchorFields
 
-            res = env.cfg.scenes.field_resolution
-            fields = [build_fields(s, resolution=res, vehicle_radius=radius) for s in env.scenes]
+            stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, radius)  # lazy, like the env's
             anchors = env.anchor_fields
             k = anchors.count if anchors is not None else 0
-            own = (env, FieldStack(fields), GoalAnchorFields(env.scenes, fields, k) if k > 0 else None)
+            own = (env, stack, GoalAnchorFields(env.scenes, stack, k, lazy=True) if k > 0 else None)
             self._own = own
         return own[1], own[2]
 

@@ -185,17 +185,16 @@ class PlannerController:
         """(FieldStack, GoalAnchorFields or None) with obstacles inflated by ``field_radius``, built once per env."""
         if self._own is not None and self._own[0] is env:
             return self._own[1], self._own[2]
-        from envs.fields import FieldStack, build_fields
+        from envs.fields import scene_field_stack
         from envs.fields.anchors import GoalAnchorFields
 
         radius = self.ec.field_radius
         if abs(radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9:
             stack, anchors = env.field_stack, env.anchor_fields
-        else:
-            res = env.cfg.scenes.field_resolution
-            fields = [build_fields(s, resolution=res, vehicle_radius=radius) for s in env.scenes]
+        else:  # lazy, like the env's: built for the scenes and goals flown
+            stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, radius)
             k = env.anchor_fields.count if env.anchor_fields is not None else 0
-            stack, anchors = FieldStack(fields), (GoalAnchorFields(env.scenes, fields, k) if k > 0 else None)
+            anchors = GoalAnchorFields(env.scenes, stack, k, lazy=True) if k > 0 else None
         self._own = (env, stack, anchors)
         return stack, anchors
 

@@ -6,7 +6,7 @@ Public API::
 
     from envs.fields import build_fields, FieldStack
     f = build_fields(scene, resolution=0.1, vehicle_radius=0.2)   # cached on disk
-    stack = FieldStack([f0, f1, ...])
+    stack = FieldStack([f0, f1, ...])                              # or scene_field_stack(scenes): lazy
     d, g, phi = stack.query(scene_ids, points)                     # (N,), (N, 3), (N,)
 
 See :mod:`envs.fields.esdf`, :mod:`envs.fields.geodesic` and :mod:`envs.fields.lookup` for the math.
@@ -21,6 +21,7 @@ from envs.fields.build import (
     cache_key,
     default_cache_dir,
     region_mask,
+    scene_field_stack,
 )
 from envs.fields.esdf import Grid
 from envs.fields.geodesic import geodesic_field, stencil
@@ -38,5 +39,6 @@ __all__ = [
     "default_cache_dir",
     "geodesic_field",
     "region_mask",
+    "scene_field_stack",
     "stencil",
 ]

@@ -13,8 +13,10 @@ import hashlib
 import json
 import math
 import os
+import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -148,11 +150,51 @@ def build_fields(
             return _load(file, grid, vehicle_radius)
         except (OSError, ValueError, KeyError) as err:  # corrupt or foreign file: rebuild and overwrite
             print(f"[fields] ignoring unreadable cache file {file}: {err}")
+    t0 = time.perf_counter()
+    report(f"{scene.family}/{scene.index}: building ESDF and geodesic field (cold cache) ...")
     fields = _build(scene, grid, vehicle_radius, stencil)
+    report(f"{scene.family}/{scene.index}: ESDF and geodesic field built in {time.perf_counter() - t0:.1f} s", True)
     fields.info["cache_key"] = key
     if use_cache:
         _save(file, fields)
     return fields
+
+
+def scene_field_stack(
+    scenes: Sequence[Scene],
+    resolution: float = DEFAULT_RESOLUTION,
+    vehicle_radius: float = DEFAULT_VEHICLE_RADIUS,
+    cache_dir: str | os.PathLike | None = None,
+    stencil: str = DEFAULT_STENCIL,
+    lazy: bool = True,
+) -> FieldStack:
+    """A :class:`FieldStack` over ``scenes`` (scene id = position in the list), fields from :func:`build_fields`.
+
+    ``lazy``: a scene is built (or read from the cache) on the first query that names it, so an env starts with only
+    the scenes it flies; otherwise all are built now.
+    """
+    scenes = list(scenes)
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"field resolution must be a positive number of metres, got {resolution}")
+
+    def build(s: int) -> SceneFields:
+        return build_fields(scenes[s], resolution, vehicle_radius, cache_dir=cache_dir, stencil=stencil)
+
+    if not lazy:
+        return FieldStack([build(s) for s in range(len(scenes))])
+    return FieldStack.lazy([Grid.for_scene(sc, resolution) for sc in scenes], build)
+
+
+def report(message: str, done: bool = False) -> None:
+    """One progress line of a field build on stderr, so a cold start never looks hung.
+
+    On a terminal the line is rewritten in place; otherwise only ``done`` lines are printed.
+    """
+    if sys.stderr.isatty():
+        sys.stderr.write(f"\r\033[K[fields] {message}" + ("\n" if done else ""))
+        sys.stderr.flush()
+    elif done:
+        print(f"[fields] {message}", file=sys.stderr, flush=True)
 
 
 def _build(scene: Scene, grid: Grid, vehicle_radius: float, stencil: str) -> SceneFields:

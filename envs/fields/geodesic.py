@@ -107,7 +107,7 @@ def _heap_pop(keys: np.ndarray, vals: np.ndarray, size: int) -> tuple[float, int
     return top_k, top_v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)  # nogil: goals on one grid are solved on parallel threads
 def _dijkstra(
     trav: np.ndarray,
     nx: int,
@@ -179,6 +179,7 @@ def geodesic_field(
     res: float,
     diag: float,
     stencil_kind: str = "extended",
+    fill: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Phi (nx, ny, nz) float32 in metres, its unreachable value, and the reachable mask.
 
@@ -188,6 +189,8 @@ def geodesic_field(
         res: Node spacing (m).
         diag: Length (m) of the scene's bounds diagonal (the unreachable margin).
         stencil_kind: ``"26"`` or ``"extended"`` (see the module docstring).
+        fill: ``nearest_traversable(traversable, res)`` when the caller already has it (it depends on
+            ``traversable`` only, so several goals on one grid share it); computed here otherwise.
 
     Raises:
         ValueError: If no goal node is traversable (goal region fully blocked).
@@ -206,7 +209,12 @@ def geodesic_field(
     phi = np.where(reachable, dist, phi_unreachable)
     if not traversable.all():
         # Non-traversable nodes: value of the nearest traversable node plus the straight distance to it.
-        gap, idx = ndimage.distance_transform_edt(~traversable, sampling=res, return_indices=True)
+        gap, idx = fill if fill is not None else nearest_traversable(traversable, res)
         filled = phi[idx[0], idx[1], idx[2]] + gap
         phi = np.where(traversable, phi, np.minimum(filled, phi_unreachable))
     return phi.astype(np.float32), phi_unreachable, reachable
+
+
+def nearest_traversable(traversable: np.ndarray, res: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (m) from every node to the nearest traversable node and that node's index (3, nx, ny, nz)."""
+    return ndimage.distance_transform_edt(~traversable, sampling=res, return_indices=True)

@@ -17,7 +17,8 @@ read at ``q``, and with ``o = |p - q|`` the distance outside,
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numba
 import numpy as np
@@ -99,26 +100,92 @@ class FieldStack:
     Args:
         fields: A sequence of :class:`envs.fields.SceneFields`; ``scene_ids`` index into it.
 
+    :meth:`lazy` makes a stack whose scenes are built (or read from the cache) on the first query that names
+    them, so an env over many scenes starts with only the scenes it flies.
+
     Memory: 20 bytes per node (ESDF, 3 gradient components and Phi as float32); a 64 x 32 x 3 m scene at
-    0.1 m (6.4 M nodes) takes about 128 MB.
+    0.1 m (6.4 M nodes) takes about 128 MB. A lazy stack reserves the flat arrays with ``np.zeros``, whose pages
+    the OS maps only when a scene is written into them.
     """
 
     def __init__(self, fields: Sequence) -> None:
         fields = list(fields)
         if not fields:
             raise ValueError("FieldStack needs at least one SceneFields")
-        sizes = [int(np.prod(f.shape)) for f in fields]
-        self.num_scenes = len(fields)
+        self._setup([f.shape for f in fields], [f.origin for f in fields], [f.res for f in fields], None)
+        for s, f in enumerate(fields):
+            self._put(s, f, share=False)
+
+    @classmethod
+    def lazy(cls, grids: Sequence, build: Callable[[int], Any]) -> FieldStack:
+        """A stack over ``grids`` (one :class:`envs.fields.Grid` per scene) whose scene ``s`` is ``build(s)``.
+
+        ``build`` is called on the first query (or :meth:`ensure`) that names ``s`` and must return a
+        :class:`envs.fields.SceneFields` on that grid.
+        """
+        grids = list(grids)
+        if not grids:
+            raise ValueError("FieldStack needs at least one scene")
+        self = cls.__new__(cls)
+        self._setup([g.shape for g in grids], [g.origin for g in grids], [g.res for g in grids], build)
+        return self
+
+    def _setup(self, shapes: list, origins: list, res: list, build: Callable[[int], Any] | None) -> None:
+        self.num_scenes = len(shapes)
+        self.shape = np.array(shapes, dtype=np.int64).reshape(-1, 3)
+        self.origin = np.array(origins, dtype=np.float64).reshape(-1, 3)
+        self.res = np.array(res, dtype=np.float64)
+        sizes = self.shape.prod(axis=1)
         self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        self.shape = np.array([f.shape for f in fields], dtype=np.int64)
-        self.origin = np.array([f.origin for f in fields], dtype=np.float64)
-        self.res = np.array([f.res for f in fields], dtype=np.float64)
-        self.phi_unreachable = np.array([f.phi_unreachable for f in fields], dtype=np.float64)
-        self._esdf = np.concatenate([f.esdf.reshape(-1) for f in fields]).astype(np.float32, copy=False)
-        self._phi = np.concatenate([f.phi.reshape(-1) for f in fields]).astype(np.float32, copy=False)
-        self._grad = np.concatenate([f.grad.reshape(-1, 3) for f in fields]).astype(np.float32, copy=False)
+        total = int(sizes.sum())
+        self.phi_unreachable = np.zeros(self.num_scenes)
+        self._esdf = np.zeros(total, dtype=np.float32)
+        self._phi = np.zeros(total, dtype=np.float32)
+        self._grad = np.zeros((total, 3), dtype=np.float32)
+        self._fields: list = [None] * self.num_scenes
+        self._ready = np.zeros(self.num_scenes, dtype=bool)
+        self._all_ready = False
+        self._build = build
         self._empty1 = np.zeros(0)
         self._empty3 = np.zeros((0, 3))
+
+    def _put(self, s: int, f: Any, share: bool) -> None:
+        """Copy scene ``s``'s fields into the flat arrays (``share``: point ``f``'s arrays at the copies)."""
+        if tuple(f.shape) != tuple(self.shape[s]):
+            raise ValueError(f"scene {s}: fields of shape {tuple(f.shape)} where the stack expects "
+                             f"{tuple(self.shape[s].tolist())}")  # fmt: skip
+        lo, n = int(self.offset[s]), int(np.prod(f.shape))
+        self._esdf[lo : lo + n] = f.esdf.reshape(-1)
+        self._phi[lo : lo + n] = f.phi.reshape(-1)
+        self._grad[lo : lo + n] = f.grad.reshape(-1, 3)
+        if share:  # one copy in memory: the SceneFields reads the stack's arrays
+            f.esdf = self._esdf[lo : lo + n].reshape(f.shape)
+            f.phi = self._phi[lo : lo + n].reshape(f.shape)
+            f.grad = self._grad[lo : lo + n].reshape(*f.shape, 3)
+        self.phi_unreachable[s] = f.phi_unreachable
+        self._fields[s] = f
+        self._ready[s] = True
+        self._all_ready = bool(self._ready.all())
+
+    @property
+    def ready(self) -> np.ndarray:
+        """Which scenes are built (bool (S,), a copy)."""
+        return self._ready.copy()
+
+    def ensure(self, scene_ids: np.ndarray | Sequence[int]) -> None:
+        """Build (or read from the cache) every scene of ``scene_ids`` that is not built yet."""
+        if self._all_ready:
+            return
+        ids = np.asarray(scene_ids, dtype=np.int64).reshape(-1)
+        for s in np.unique(ids[~self._ready[ids]]).tolist():
+            self._put(s, self._build(s), share=True)
+
+    def scene_fields(self, s: int) -> Any:
+        """Scene ``s``'s :class:`envs.fields.SceneFields` (built first if the stack is lazy and it is not yet)."""
+        if not 0 <= s < self.num_scenes:
+            raise ValueError(f"scene id must lie in 0..{self.num_scenes - 1}; got {s}")
+        self.ensure([s])
+        return self._fields[s]
 
     def _check(self, scene_ids: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ids = np.asarray(scene_ids)
@@ -130,7 +197,10 @@ class FieldStack:
         if not np.isfinite(pts).all():
             bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
             raise ValueError(f"points must be finite; row {bad} is {pts[bad].tolist()}")
-        return ids.astype(np.int64, copy=False), np.ascontiguousarray(pts)
+        ids = ids.astype(np.int64, copy=False)
+        if not self._all_ready:
+            self.ensure(ids)
+        return ids, np.ascontiguousarray(pts)
 
     def query(
         self, scene_ids: np.ndarray, points: np.ndarray, esdf: bool = True, grad: bool = True, geodesic: bool = True

@@ -13,7 +13,7 @@ from gymnasium.vector.utils import batch_space
 
 from envs.camera import DepthCamera, DepthNoise, normalize_depth
 from envs.config import load_config
-from envs.fields import FieldStack, build_fields
+from envs.fields import scene_field_stack
 from envs.fields.anchors import GoalAnchorFields
 from envs.navigation import rewards as R
 from envs.navigation.config import REWARD_TERMS, NavConfig
@@ -104,15 +104,13 @@ class NavigationEnv(VectorEnv):
         # ---------------------------------------------------------------- scenes, fields, physics, camera
         sc = cfg.scenes
         self.scenes = [make_scene(sc.family, i, sc.seed) for i in sc.indices]
-        self.fields = [
-            build_fields(s, resolution=sc.field_resolution, vehicle_radius=cfg.vehicle.airframe.collision_radius)
-            for s in self.scenes
-        ]
-        self.field_stack = FieldStack(self.fields)
+        # Fields are built (or read from the cache) lazily: a scene on the first reset into it, an anchor's field on
+        # the first episode that draws it, so a fresh env pays only for the scenes and goals it flies.
+        self.field_stack = scene_field_stack(self.scenes, sc.field_resolution, cfg.vehicle.airframe.collision_radius)
         # Goal anchors set the goal distribution for every formulation (so ablations fly the same goals); their
         # fields are the navigation potential only with the geodesic reward.
         k = cfg.episode.goal_anchors
-        self.anchor_fields = GoalAnchorFields(self.scenes, self.fields, k) if k > 0 else None
+        self.anchor_fields = GoalAnchorFields(self.scenes, self.field_stack, k, lazy=True) if k > 0 else None
         self._anchor_phi = self.anchor_fields is not None and cfg.reward.navigation == "geodesic"
         length = max(s.bounds_hi[0] - s.bounds_lo[0] for s in self.scenes)
         self.tile_offset = np.array([[k * (length + sc.tile_gap), 0.0, 0.0] for k in range(len(self.scenes))])

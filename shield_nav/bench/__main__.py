@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHMARKS = ("vehicle", "fields", "depth", "env", "train", "shield", "expert")
+BENCHMARKS = ("vehicle", "fields", "depth", "env", "train", "shield", "expert", "startup")
 
 
 def main(argv: list[str] | None = None) -> int:

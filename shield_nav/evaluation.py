@@ -89,108 +89,32 @@ class RowConfig:
 POLICY_CONTROLLERS = ("policy", "teacher")
 """Row controllers that run a checkpoint named by ``RowConfig.policy``."""
 
-BUILTIN_ROWS: dict[str, RowConfig] = {
-    "distance": RowConfig("Distance", "policy", "distance"),
-    "dijkstra": RowConfig("Dijkstra", "policy", "dijkstra"),
-    "dijkstra_cbf": RowConfig("Dijkstra + CBF", "policy", "dijkstra_cbf"),
-    "full": RowConfig("Ours (Full) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf", shield=True),
-    "inflation": RowConfig("Geometric inflation (0.4 m)", "policy", "inflation"),
-    "distance_distilled": RowConfig("Distance (distilled)", "policy", "distance_distilled"),
-    "dijkstra_distilled": RowConfig("Dijkstra (distilled)", "policy", "dijkstra_distilled"),
-    "dijkstra_cbf_distilled": RowConfig("Dijkstra + CBF (distilled)", "policy", "dijkstra_cbf_distilled"),
-    "inflation_distilled": RowConfig("Geometric inflation (0.4 m, distilled)", "policy", "inflation_distilled"),
-    "full_distilled": RowConfig("Full (distilled) = Dijkstra + CBF + shield", "policy", "dijkstra_cbf_distilled",
-                                shield=True),  # fmt: skip
-    "oracle_distilled": RowConfig("Oracle-DAgger student (depth)", "policy", "oracle_distilled"),
-    "oracle_distilled_shield": RowConfig("Oracle-DAgger student + shield", "policy", "oracle_distilled",
-                                         shield=True),  # fmt: skip
-    "oracle_distilled_shapes": RowConfig("Oracle-DAgger student, all-shapes training (depth)", "policy",
-                                         "oracle_distilled_shapes"),  # fmt: skip
-    "oracle_distilled_shapes_shield": RowConfig("Oracle-DAgger student, all-shapes training + shield", "policy",
-                                                "oracle_distilled_shapes", shield=True),  # fmt: skip
-    "oracle_distilled_shapes_3ms": RowConfig("Oracle-DAgger student, all-shapes, trained at 3 m/s (depth)",
-                                             "policy", "oracle_distilled_shapes_3ms"),  # fmt: skip
-    "oracle_distilled_shapes_3ms_shield": RowConfig("Oracle-DAgger student, all-shapes, trained at 3 m/s + shield",
-                                                    "policy", "oracle_distilled_shapes_3ms", shield=True),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh": RowConfig("Multi-hypothesis student, all-shapes, trained at 3 m/s (depth)",
-                                                "policy", "oracle_distilled_shapes_3ms_mh"),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_shield": RowConfig(
-        "Multi-hypothesis student, all-shapes, trained at 3 m/s + shield", "policy", "oracle_distilled_shapes_3ms_mh",
-        shield=True),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_replay": RowConfig(
-        "Multi-hypothesis student, 3 m/s, cosine rate + replay (depth)", "policy",
-        "oracle_distilled_shapes_3ms_mh_replay"),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_replay_shield": RowConfig(
-        "Multi-hypothesis student, 3 m/s, cosine rate + replay + shield", "policy",
-        "oracle_distilled_shapes_3ms_mh_replay", shield=True),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_restart": RowConfig(
-        "Multi-hypothesis student, 3 m/s, second cosine cycle (depth)", "policy",
-        "oracle_distilled_shapes_3ms_mh_restart"),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_restart_shield": RowConfig(
-        "Multi-hypothesis student, 3 m/s, second cosine cycle + shield", "policy",
-        "oracle_distilled_shapes_3ms_mh_restart", shield=True),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_restart2": RowConfig(
-        "Multi-hypothesis student, 3 m/s, third cosine cycle (depth)", "policy",
-        "oracle_distilled_shapes_3ms_mh_restart2"),  # fmt: skip
-    "oracle_distilled_shapes_3ms_mh_restart2_shield": RowConfig(
-        "Multi-hypothesis student, 3 m/s, third cosine cycle + shield", "policy",
-        "oracle_distilled_shapes_3ms_mh_restart2", shield=True),  # fmt: skip
-    "distance_finetuned": RowConfig("Distance (oracle DAgger + PPO)", "policy", "distance_finetuned"),
-    "dijkstra_finetuned": RowConfig("Dijkstra (oracle DAgger + PPO)", "policy", "dijkstra_finetuned"),
-    "dijkstra_cbf_finetuned": RowConfig("Dijkstra + CBF (oracle DAgger + PPO)", "policy", "dijkstra_cbf_finetuned"),
-    "full_finetuned": RowConfig("Full (oracle DAgger + PPO) = Dijkstra + CBF + shield", "policy",
-                                "dijkstra_cbf_finetuned", shield=True),  # fmt: skip
-    "distance_finetuned_3ms": RowConfig("Distance (3 m/s student + anchored PPO)", "policy", "distance_finetuned_3ms"),
-    "dijkstra_finetuned_3ms": RowConfig("Dijkstra (3 m/s student + anchored PPO)", "policy", "dijkstra_finetuned_3ms"),
-    "dijkstra_cbf_finetuned_3ms": RowConfig("Dijkstra + CBF (3 m/s student + anchored PPO)", "policy",
-                                            "dijkstra_cbf_finetuned_3ms"),  # fmt: skip
-    "full_finetuned_3ms": RowConfig("Full (3 m/s student + anchored PPO) = Dijkstra + CBF + shield", "policy",
-                                    "dijkstra_cbf_finetuned_3ms", shield=True),  # fmt: skip
-    "distance_kickstarted_3ms": RowConfig("Distance (3 m/s student + PPO kickstarted by the oracle)", "policy",
-                                          "distance_kickstarted_3ms"),  # fmt: skip
-    "dijkstra_kickstarted_3ms": RowConfig("Dijkstra (3 m/s student + PPO kickstarted by the oracle)", "policy",
-                                          "dijkstra_kickstarted_3ms"),  # fmt: skip
-    "dijkstra_cbf_kickstarted_3ms": RowConfig("Dijkstra + CBF (3 m/s student + PPO kickstarted by the oracle)",
-                                              "policy", "dijkstra_cbf_kickstarted_3ms"),  # fmt: skip
-    "full_kickstarted_3ms": RowConfig("Full (3 m/s student + PPO kickstarted by the oracle) = Dijkstra + CBF + shield",
-                                      "policy", "dijkstra_cbf_kickstarted_3ms", shield=True),  # fmt: skip
-    "distance_traps_3ms": RowConfig("Distance (3 m/s student + PPO on train_traps)", "policy", "distance_traps_3ms"),
-    "dijkstra_traps_3ms": RowConfig("Dijkstra (3 m/s student + PPO on train_traps)", "policy", "dijkstra_traps_3ms"),
-    "dijkstra_cbf_traps_3ms": RowConfig("Dijkstra + CBF (3 m/s student + PPO on train_traps)", "policy",
-                                        "dijkstra_cbf_traps_3ms"),  # fmt: skip
-    "teacher_distance": RowConfig("Teacher, Distance (privileged map)", "teacher", "teacher_distance"),
-    "teacher_dijkstra": RowConfig("Teacher, Dijkstra (privileged map)", "teacher", "teacher_dijkstra"),
-    "teacher_dijkstra_cbf": RowConfig("Teacher, Dijkstra + CBF (privileged map)", "teacher", "teacher_dijkstra_cbf"),
-    "teacher_inflation": RowConfig("Teacher, inflation (privileged map)", "teacher", "teacher_inflation"),
-    "expert": RowConfig("Expert (privileged planner)", "expert"),
-    "oracle": RowConfig("Oracle (privileged map)", "oracle"),
-    "oracle_euclidean": RowConfig("Oracle, Euclidean guidance (privileged ESDF)", "oracle_euclidean"),
-    "reactive": RowConfig("Reactive depth primitives", "reactive"),
-    "reactive_geodesic": RowConfig("Reactive depth primitives, geodesic guidance (privileged Phi)",
-                                   "reactive_geodesic"),  # fmt: skip
-    "goal_seeking": RowConfig("Goal-seeking (no shield)", "goal"),
-    "shield_only": RowConfig("Shield only (goal-seeking + HOCBF)", "goal", shield=True),
-}
-"""Configurations known by name. A config's ``rows`` may add or override entries."""
+ROWS_FILE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "configs", "eval", "rows.yaml")
+"""The registry of named rows and the policy files they fly (YAML: ``rows:`` and ``checkpoints:``)."""
 
-KICKSTART_REPLICATE_SEEDS = (2, 3, 4)
-"""Training seeds of the replicate kickstarted students, one row each (seed 0, the configs' default, is
-``<f>_kickstarted_3ms``)."""
-for _seed in KICKSTART_REPLICATE_SEEDS:
-    for _f, _label in (("distance", "Distance"), ("dijkstra", "Dijkstra"), ("dijkstra_cbf", "Dijkstra + CBF")):
-        _name = f"{_f}_kickstarted_3ms_seed{_seed}"
-        _label = f"{_label} (3 m/s student + PPO kickstarted by the oracle, training seed {_seed})"
-        BUILTIN_ROWS[_name] = RowConfig(_label, "policy", _name)
 
-TRAPS_REPLICATES = (("distance", 3), ("dijkstra", 2), ("dijkstra_cbf", 2), ("dijkstra_cbf", 3))
-"""(formulation, training seed) of the committed replicate ``train_traps`` policies, one row each (seed 0 is
-``<f>_traps_3ms``). Distance seed 2 and Dijkstra seed 3 were lost: launched in the same second as their other seed,
-they shared its run folder (fixed since: ``_new_run_dir``)."""
-for _f, _seed in TRAPS_REPLICATES:
-    _label = {"distance": "Distance", "dijkstra": "Dijkstra", "dijkstra_cbf": "Dijkstra + CBF"}[_f]
-    _name = f"{_f}_traps_3ms_seed{_seed}"
-    BUILTIN_ROWS[_name] = RowConfig(f"{_label} (3 m/s student + PPO on train_traps, training seed {_seed})", "policy",
-                                    _name)  # fmt: skip
+def load_registry(path: str = ROWS_FILE) -> tuple[dict[str, RowConfig], dict[str, str]]:
+    """``(rows, checkpoints)`` of a registry file; a bad or unknown key is an :class:`EvalError` naming it."""
+    if not os.path.isfile(path):
+        raise EvalError(f"row registry {path!r} not found (it ships in the repository: configs/eval/rows.yaml)")
+    with open(path) as fh:
+        raw = yaml.safe_load(fh) or {}
+    unknown = set(raw) - {"rows", "checkpoints"}
+    if unknown:
+        raise EvalError(f"{path}: unknown top-level key(s) {sorted(unknown)}; expected 'rows' and 'checkpoints'")
+    names = {f.name for f in dataclasses.fields(RowConfig)}
+    rows = {}
+    for name, spec in (raw.get("rows") or {}).items():
+        bad = set(spec or {}) - names
+        if bad:
+            raise EvalError(f"{path}: rows.{name}: unknown key(s) {sorted(bad)}; known: {sorted(names)}")
+        rows[name] = RowConfig(**(spec or {}))
+    checkpoints = {str(k): str(v) for k, v in (raw.get("checkpoints") or {}).items()}
+    return rows, checkpoints
+
+
+BUILTIN_ROWS, BUILTIN_CHECKPOINTS = load_registry()
+"""Configurations known by name (:data:`ROWS_FILE`). A config's ``rows`` may add or override entries."""
 
 
 @dataclass
@@ -215,29 +139,7 @@ class EvalConfig:
     """Rows, by name: :data:`BUILTIN_ROWS` or ``rows``."""
     rows: dict[str, RowConfig] = field(default_factory=dict)
     """Extra (or overriding) row definitions."""
-    checkpoints: dict[str, str] = field(
-        default_factory=lambda: {
-            k: f"checkpoints/{k}"
-            for k in ("distance", "dijkstra", "dijkstra_cbf", "inflation", "distance_distilled", "dijkstra_distilled",
-                      "dijkstra_cbf_distilled", "inflation_distilled", "teacher_distance", "teacher_dijkstra",
-                      "teacher_dijkstra_cbf", "teacher_inflation", "oracle_distilled", "oracle_distilled_shapes",
-                      "oracle_distilled_shapes_3ms", "oracle_distilled_shapes_3ms_mh",
-                      "oracle_distilled_shapes_3ms_mh_replay", "oracle_distilled_shapes_3ms_mh_restart",
-                      "oracle_distilled_shapes_3ms_mh_restart2", "distance_finetuned",
-                      "dijkstra_finetuned", "dijkstra_cbf_finetuned", "distance_finetuned_3ms",
-                      "dijkstra_finetuned_3ms", "dijkstra_cbf_finetuned_3ms", "distance_kickstarted_3ms",
-                      "dijkstra_kickstarted_3ms", "dijkstra_cbf_kickstarted_3ms", "distance_traps_3ms",
-                      "dijkstra_traps_3ms", "dijkstra_cbf_traps_3ms")  # fmt: skip
-        }
-        | {
-            f"{f}_kickstarted_3ms_seed{seed}": f"checkpoints/{f}_kickstarted_3ms_seed{seed}"
-            for seed in KICKSTART_REPLICATE_SEEDS
-            for f in ("distance", "dijkstra", "dijkstra_cbf")
-        }
-        | {
-            f"{f}_traps_3ms_seed{seed}": f"checkpoints/{f}_traps_3ms_seed{seed}" for f, seed in TRAPS_REPLICATES
-        }
-    )
+    checkpoints: dict[str, str] = field(default_factory=lambda: dict(BUILTIN_CHECKPOINTS))
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""
     missing_checkpoints: str = "error"
     """``error``: a row whose checkpoint is missing stops the run. ``skip``: the row is shown as missing."""

@@ -1,6 +1,6 @@
 """Training throughput: a few PPO iterations of the ``dijkstra_cbf`` config, end to end (collection + learning).
 
-Any training config works (``--config configs/train/teacher_dijkstra_cbf.yaml`` measures a privileged teacher;
+Any training config works (``--config configs/experiments/teacher_dijkstra_cbf.yaml`` measures a privileged teacher;
 a ``distill_*.yaml`` config needs its teacher checkpoint).
 
 ``python -m shield_nav.bench train --json [--num-envs N] [--iterations K] [--warmup W] [--config PATH]``.

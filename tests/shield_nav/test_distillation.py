@@ -239,7 +239,7 @@ def test_replay_keeps_the_last_rollouts_fits_them_and_leaves_the_live_hidden_sta
 
 
 def test_config_errors_name_the_key():
-    path = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms_mh.yaml")
+    path = os.path.join(REPO, "configs", "experiments", "distill_oracle_shapes_3ms_mh.yaml")
     cfg = load_train_config(path)
     assert cfg.runner.actor.num_hypotheses == 3 and cfg.runner.algorithm.class_name == MULTI_HYPOTHESIS_ALGORITHM
     with pytest.raises(ConfigError, match="runner.algorithm.class_name"):
@@ -258,7 +258,7 @@ def test_config_errors_name_the_key():
         load_train_config(path, overrides=["runner.algorithm.lr_final=0.1", "runner.algorithm.lr_schedule=cosine"])
     # A constant rate ignores lr_final, even with learning_rate 0 (a frozen student).
     assert load_train_config(path, overrides=["runner.algorithm.learning_rate=0.0"]).runner.algorithm.learning_rate == 0
-    single = os.path.join(REPO, "configs", "train", "distill_oracle_shapes_3ms.yaml")
+    single = os.path.join(REPO, "configs", "experiments", "distill_oracle_shapes_3ms.yaml")
     with pytest.raises(ConfigError, match="runner.algorithm.lr_schedule"):  # rsl-rl's Distillation has no schedule
         load_train_config(single, overrides=["runner.algorithm.lr_schedule=cosine"])
     cfg = load_train_config(single, overrides=["runner.algorithm.lr_schedule=cosine",
@@ -283,10 +283,18 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
 
     from shield_nav.package import actor_from_checkpoint
 
-    root = str(tmp_path / "logs")
-    args = [sys.executable, "train.py", "--config", "configs/train/distill_oracle_shapes_3ms_mh_cosine.yaml",
-            "--num-envs", "4", "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
+    # A single-head student to start from (none ships in the release): one DAgger iteration from the oracle.
+    single = str(tmp_path / "single")
+    tiny = ["--num-envs", "4", "--max-iterations", "1", "--set", "runner.num_steps_per_env=8",
             "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"]  # fmt: skip
+    first = [sys.executable, "train.py", "--config", "configs/experiments/distill_oracle.yaml", "--log-dir", single]
+    res = subprocess.run([*first, *tiny], cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-3000:]
+    (srun,) = os.listdir(os.path.join(single, "shield_nav"))
+    start = os.path.join(single, "shield_nav", srun, "model_0.pt")
+    root = str(tmp_path / "logs")
+    args = [sys.executable, "train.py", "--config", "configs/experiments/distill_oracle_shapes_3ms_mh_cosine.yaml",
+            "--log-dir", root, *tiny, f"runner.student_init={start}"]  # fmt: skip
     res = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "single-head student expanded to 3 hypotheses" in res.stdout
@@ -352,7 +360,7 @@ def test_imitation_cli_on_the_committed_student():
     import subprocess
     import sys
 
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/oracle_distilled_shapes",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student_3ms",
                           "--steps", "20", "--num-envs", "4", "--level", "2", "--json"],
                          cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
@@ -360,6 +368,6 @@ def test_imitation_cli_on_the_committed_student():
     assert out["samples"] == 80 and out["level"] == 2 and out["speed"] == 3.0
     per = out["per_dim"]
     assert out["mse"] == pytest.approx(np.mean([per[k]["mse"] for k in per]))
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/oracle_distilled_shapes",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student_3ms",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr

@@ -201,15 +201,29 @@ def test_layout_mismatch_is_a_clear_error(tmp_path):
         E.prepare(cfg)
 
 
-def test_teacher_row_runs_the_privileged_mlp(tmp_path):
+@pytest.fixture(scope="module")
+def tiny_teacher(tmp_path_factory):
+    """A privileged MLP teacher trained for one PPO iteration by train.py (no teacher ships in the release)."""
+    root = tmp_path_factory.mktemp("teacher")
+    res = subprocess.run([sys.executable, "train.py", "--config", "configs/experiments/teacher_dijkstra_cbf.yaml",
+                          "--max-iterations", "1", "--num-envs", "4", "--log-dir", str(root), "--set",
+                          "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]",
+                          "runner.algorithm.num_mini_batches=2"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    (run,) = os.listdir(os.path.join(root, "shield_nav"))
+    return os.path.join(root, "shield_nav", run, "model_0.pt")
+
+
+def test_teacher_row_runs_the_privileged_mlp(tmp_path, tiny_teacher):
     import torch
 
-    path = os.path.join(ROOT, "checkpoints", "teacher_dijkstra_cbf")
+    path = tiny_teacher
     teacher = E.load_teacher(path, "teacher_dijkstra_cbf")
     assert teacher.info.kind == "teacher" and teacher.info.obs_dim == 21 + 9 * 9 * 3
     assert teacher.info.train_env["local_map"]["enabled"] is True
     # Independent forward from the raw weights: normalise (eps 0.01, rsl-rl's), three ELU layers, a linear head.
-    sd = {k: v.double().numpy() for k, v in torch.load(os.path.join(path, "model.pt"), weights_only=False)[
+    sd = {k: v.double().numpy() for k, v in torch.load(path, weights_only=False)[
         "actor_state_dict"].items() if v.dim() > 0}  # fmt: skip
     x = np.random.default_rng(0).normal(size=(3, 264))
     z = (x - sd["obs_normalizer._mean"]) / (sd["obs_normalizer._std"] + 0.01)
@@ -220,11 +234,12 @@ def test_teacher_row_runs_the_privileged_mlp(tmp_path):
     np.testing.assert_allclose(teacher.step(x), z, atol=1e-4)
     # A student is not a teacher.
     with pytest.raises(E.EvalError, match="not a privileged teacher"):
-        E.load_teacher(os.path.join(ROOT, "checkpoints", "dijkstra_cbf_distilled"), "s")
+        E.load_teacher(os.path.join(ROOT, "checkpoints", "dijkstra_cbf"), "s")
     with pytest.raises(E.EvalError, match="no teacher checkpoint"):
         E.load_teacher(str(tmp_path), "nothing")
     # Through the harness: the unit enables the map and skips rendering; the header says the row is privileged.
     cfg = tiny_cfg("configurations=[teacher_dijkstra_cbf]", f"checkpoints.teacher_dijkstra_cbf={path}",
+                   "rows={teacher_dijkstra_cbf: {label: Teacher, controller: teacher, policy: teacher_dijkstra_cbf}}",
                    "trials_per_scene=1", "speeds=[3.0]", "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
     (unit,) = E.plan_units(E.prepare(cfg))
     assert unit.policy_env["local_map"]["enabled"] is True and unit.policy_env["render_depth"] is False
@@ -332,13 +347,13 @@ def test_shipped_eval_configs_resolve(name):
 def test_truncated_torchscript_export_is_called_truncated(tmp_path):
     """A policy.pt cut short by an interrupted copy is reported as truncated, not as 'not a TorchScript export';
     a training checkpoint given instead of an export keeps its own message."""
-    good = os.path.join(ROOT, "checkpoints", "oracle_distilled", "policy.pt")
+    good = os.path.join(ROOT, "checkpoints", "student_3ms", "policy.pt")
     cut = tmp_path / "policy.pt"
     with open(good, "rb") as f:
         cut.write_bytes(f.read()[:20000])
     with pytest.raises(E.EvalError, match=r"\(20000 bytes\) is truncated or corrupt"):
         E.load_policy(str(cut), "cut")
-    train_ckpt = os.path.join(ROOT, "checkpoints", "oracle_distilled", "model.pt")
+    train_ckpt = os.path.join(ROOT, "checkpoints", "student_3ms", "model.pt")
     with pytest.raises(E.EvalError, match="is not a TorchScript export"):
         E.load_policy(train_ckpt, "ckpt")
     assert E.load_policy(good, "good").info.obs_dim > 0
@@ -419,3 +434,18 @@ def test_unreadable_policy_config_warns_with_its_name(tmp_path):
         assert E._speeds_from_config(str(bad)) is None
     with pytest.warns(UserWarning, match=r"config\.yaml.*action, camera and vehicle"):
         assert E._env_from_config(str(bad)) is None
+
+
+def test_row_registry_is_yaml_with_the_paper_names_and_rejects_unknown_keys(tmp_path):
+    rows, checkpoints = E.load_registry()
+    assert [rows[k].label for k in ("distance", "dijkstra", "dijkstra_cbf", "full")] == [
+        "Distance", "Dijkstra", "Dijkstra + CBF", "Full"]  # fmt: skip
+    assert rows["full"].policy == "dijkstra_cbf" and rows["full"].shield and not rows["dijkstra_cbf"].shield
+    assert all(os.path.isdir(os.path.join(ROOT, p)) for p in checkpoints.values())  # every shipped policy is there
+    bad = tmp_path / "rows.yaml"
+    bad.write_text("rows:\n  mine: {label: x, controler: oracle}\n")
+    with pytest.raises(E.EvalError, match=r"rows.mine: unknown key\(s\) \['controler'\]"):
+        E.load_registry(str(bad))
+    bad.write_text("row: {}\n")
+    with pytest.raises(E.EvalError, match=r"unknown top-level key\(s\) \['row'\]"):
+        E.load_registry(str(bad))

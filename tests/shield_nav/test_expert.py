@@ -134,7 +134,7 @@ def test_reactive_planner_aligns_with_its_guidance():
 
 
 def test_unknown_oracle_guidance_fails_by_name():
-    path = os.path.join(REPO, "configs", "train", "kickstart_3ms.yaml")
+    path = os.path.join(REPO, "configs", "experiments", "kickstart_3ms.yaml")
     with pytest.raises(ConfigError, match=r"runner.expert.params.oracle.guidance.*'manhattan'"):
         load_train_config(path, overrides=["runner.expert.params.oracle.guidance=manhattan"])
     cfg = load_train_config(path, overrides=["runner.expert.params.oracle.guidance=euclidean"])
@@ -166,7 +166,7 @@ def test_expert_teacher_passes_the_group_through_and_checks_shapes():
 def test_distillation_runner_labels_with_the_oracle():
     """rsl-rl's Distillation stores the oracle's action of each visited state as the privileged action."""
     cfg = load_train_config(
-        os.path.join(REPO, "configs", "train", "distill_oracle.yaml"),
+        os.path.join(REPO, "configs", "experiments", "distill_oracle.yaml"),
         overrides=["env.num_envs=4", "env.scenes.indices=[0,1]", "runner.num_steps_per_env=4",
                    "runner.algorithm.num_mini_batches=2"],  # fmt: skip
     )
@@ -183,7 +183,7 @@ def test_distillation_runner_labels_with_the_oracle():
 
 
 def test_expert_config_errors_name_the_key():
-    path = os.path.join(REPO, "configs", "train", "distill_oracle.yaml")
+    path = os.path.join(REPO, "configs", "experiments", "distill_oracle.yaml")
     with pytest.raises(ConfigError, match="runner.expert.kind"):
         load_train_config(path, overrides=["runner.expert.kind=mpc"])
     with pytest.raises(ConfigError, match="runner.expert.kind"):
@@ -205,7 +205,7 @@ def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
     root = str(tmp_path / "logs")
     small = ["--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]",
              "runner.algorithm.num_mini_batches=2"]  # fmt: skip
-    res = run_train("--config", "configs/train/distill_oracle.yaml", "--max-iterations", "1", *small)
+    res = run_train("--config", "configs/experiments/distill_oracle.yaml", "--max-iterations", "1", *small)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "teacher: the scripted 'oracle' expert" in res.stdout
     (run,) = os.listdir(os.path.join(root, "shield_nav"))
@@ -218,7 +218,7 @@ def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert "continuing at iteration 1" in res.stdout and os.path.isfile(os.path.join(run_dir, "model_1.pt"))
 
-    res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
+    res = run_train("--config", "configs/experiments/finetune_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
                     f"runner.actor_init={student_path}", "runner.critic_warmup_iterations=1",
                     "runner.save_interval=1")  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
@@ -237,13 +237,13 @@ def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
 
 def test_fine_tune_inputs_fail_fast(tmp_path):
     root = str(tmp_path / "logs")
-    res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--log-dir", root,
+    res = run_train("--config", "configs/experiments/finetune_dijkstra_cbf.yaml", "--log-dir", root,
                     "--set", "runner.actor_init=nowhere/model.pt")  # fmt: skip
     assert res.returncode == 2 and "runner.actor_init" in res.stderr and "nowhere/model.pt" in res.stderr
-    res = run_train("--config", "configs/train/finetune_dijkstra_cbf.yaml", "--log-dir", root,
+    res = run_train("--config", "configs/experiments/finetune_dijkstra_cbf.yaml", "--log-dir", root,
                     "--set", "runner.algorithm.schedule=adaptive")  # fmt: skip
     assert res.returncode == 2 and "runner.critic_warmup_iterations" in res.stderr
-    res = run_train("--config", "configs/train/distill_oracle.yaml", "--log-dir", root,
+    res = run_train("--config", "configs/experiments/distill_oracle.yaml", "--log-dir", root,
                     "--set", "runner.actor_init=checkpoints/dijkstra_cbf/model.pt")  # fmt: skip
     assert res.returncode == 2 and "runner.actor_init" in res.stderr and "OnPolicyRunner" in res.stderr
     assert not os.path.exists(root)  # nothing was started

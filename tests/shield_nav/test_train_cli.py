@@ -129,14 +129,14 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     root = str(tmp_path / "logs")
     small = ["--num-envs", "4", "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
              "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"]  # fmt: skip
-    res = run_train(["--config", "configs/train/teacher_dijkstra_cbf.yaml", *small, "runner.save_interval=1"])
+    res = run_train(["--config", "configs/experiments/teacher_dijkstra_cbf.yaml", *small, "runner.save_interval=1"])
     assert res.returncode == 0, res.stderr[-3000:]
     assert "not exported: the policy is a MLPModel" in res.stdout  # a privileged teacher is not deployable
     (teacher_dir,) = [os.path.join(root, "shield_nav", d) for d in os.listdir(os.path.join(root, "shield_nav"))]
     teacher_ckpt = os.path.join(teacher_dir, "model_0.pt")
     assert not os.path.exists(os.path.join(teacher_dir, "exported"))
 
-    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", *small,
+    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", *small,
                      f"runner.teacher_checkpoint={teacher_ckpt}"])  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     (student_dir,) = [d for d in os.listdir(os.path.join(root, "shield_nav")) if d.endswith("_distilled")]
@@ -151,7 +151,7 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     assert [i.name for i in sess.get_inputs()][1] == "depth"  # the deployable student reads depth, not the map
 
     # Re-distillation warm start: runner.student_init loads that student (learning rate 0 keeps it as loaded).
-    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", *small, "--set", "name=warm",
+    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", *small, "--set", "name=warm",
                      f"runner.teacher_checkpoint={teacher_ckpt}", "runner.algorithm.learning_rate=0.0",
                      f"runner.student_init={os.path.join(student_dir, 'model_0.pt')}"])  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
@@ -188,15 +188,15 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
 
 def test_distillation_inputs_fail_fast(tmp_path):
     root = str(tmp_path / "logs")
-    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", "--log-dir", root,
+    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", "--log-dir", root,
                      "--set", "runner.teacher_checkpoint=nowhere/model.pt"], timeout=120)  # fmt: skip
     assert res.returncode == 2 and "runner.teacher_checkpoint" in res.stderr and "nowhere/model.pt" in res.stderr
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.class_name=DistillationRunner"], timeout=120)
     assert res.returncode == 2 and "runner.algorithm.class_name" in res.stderr
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.obs_groups.actor=[teacher]"], timeout=120)
     assert res.returncode == 2 and "env.local_map.enabled" in res.stderr
-    res = run_train(["--config", "configs/train/distill_dijkstra_cbf.yaml", "--log-dir", root, "--set",
-                     "runner.teacher_checkpoint=checkpoints/teacher_dijkstra_cbf/model.pt",
+    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", "--log-dir", root, "--set",
+                     "runner.teacher_checkpoint=checkpoints/student_3ms/model.pt",
                      "runner.student_init=nowhere/student.pt"], timeout=120)  # fmt: skip
     assert res.returncode == 2 and "runner.student_init" in res.stderr and "nowhere/student.pt" in res.stderr
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.student_init=checkpoints/dijkstra_cbf/model.pt"])
@@ -237,12 +237,13 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
     for key in ("actor_init", "student_init"):
         path = getattr(r, key)
         assert not path or os.path.isfile(os.path.join(REPO, path)), f"{name}: runner.{key} {path!r} missing"
-    if name.startswith("traps_3ms"):  # the reward ablation on the traps layout: no oracle, the drift penalty
+    if name in ("recipe_distance.yaml", "recipe_dijkstra.yaml", "recipe_dijkstra_cbf.yaml"):
+        # the shipped formulations: PPO on the traps layout from the shipped student, no oracle, the drift penalty
         assert cfg.env.scenes.family == "train_traps" and not r.expert.kind
-        assert r.algorithm.anchor_target == "actor_init" and r.actor_init.endswith("_mh_restart2/model.pt")
-        if name != "traps_3ms.yaml":
-            want = {"distance": "euclidean"}.get(name[len("traps_3ms_") : -len(".yaml")], "geodesic")
-            assert cfg.env.reward.navigation == want
+        assert r.algorithm.anchor_target == "actor_init" and r.actor_init == "checkpoints/student_3ms/model.pt"
+        want = {"recipe_distance.yaml": "euclidean"}.get(name, "geodesic")
+        assert cfg.env.reward.navigation == want
+        assert (cfg.env.reward.scales["safety"] > 0) == (name == "recipe_dijkstra_cbf.yaml")
 
 
 def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeypatch):
@@ -270,7 +271,7 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeyp
 
 def test_truncated_resume_checkpoint_fails_fast_by_name(tmp_path):
     """A checkpoint cut short by an interrupted copy: a clear error naming --resume, no traceback, no run folder."""
-    good = os.path.join(REPO, "checkpoints", "oracle_distilled", "model.pt")
+    good = os.path.join(REPO, "checkpoints", "student_3ms", "model.pt")
     cut = tmp_path / "model_10.pt"
     with open(good, "rb") as f:
         cut.write_bytes(f.read()[:5000])
@@ -321,7 +322,7 @@ def test_inapplicable_algorithm_key_fails_by_name():
                             overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
     with pytest.raises(ConfigError, match=r"runner\.algorithm\.wta_epsilon': PPO does not take it"):
         check_algorithm_keys(ppo)
-    mh = load_train_config(os.path.join(REPO, "configs/train/distill_oracle_shapes_3ms_mh.yaml"),
+    mh = load_train_config(os.path.join(REPO, "configs/experiments/distill_oracle_shapes_3ms_mh.yaml"),
                            overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
     check_algorithm_keys(mh)
     check_algorithm_keys(load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml")))

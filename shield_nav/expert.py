@@ -18,7 +18,7 @@ Every control step, for every env at once (numpy over envs, a short loop over pa
    to the point ``max(lookahead_min, |v| lookahead_s)`` ahead (pure pursuit pulls back onto the path), and the
    feedforward acceleration ``v_r d(v t)/ds`` (centripetal and along-track). The command is
    ``a = a_ff + k_v (v_ref - v)``, turned into thrust and attitude with the tilt and thrust limits of
-   :class:`shield_nav.baselines.TrackingConfig` overridden by ``max_tilt_deg``. Yaw follows the chord, so the
+   :class:`shield_nav.tracking.TrackingConfig` overridden by ``max_tilt_deg``. Yaw follows the chord, so the
    camera looks along the path.
 
 The expert is stateless: its command depends only on the current state, so it labels any state a student reaches
@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from envs.config import require
+from shield_nav.tracking import accel_to_command
 
 
 @dataclass
@@ -296,8 +297,6 @@ class PlannerController:
 
     def commands(self, env: Any) -> np.ndarray:
         """Commands (N, 4) = [f_n, phi, theta, psi] (see the module docstring)."""
-        from shield_nav.baselines import accel_to_command
-
         ec = self.ec
         plan = self.plan(env)
         path, v_prof = plan["path"], plan["speed"]

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import glob
 import json
-import math
 import os
 
 from shield_nav.evaluation import wilson_interval
@@ -41,8 +40,10 @@ def mcnemar_exact(a_only: int, b_only: int) -> float:
     n, k = a_only + b_only, min(a_only, b_only)
     if n == 0:
         return 1.0
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
-    return min(1.0, 2.0 * tail)
+    from scipy.stats import binomtest
+
+    # Under "equally good" each discordant pair is a fair coin: the exact two-sided binomial test of k of n.
+    return min(1.0, float(binomtest(k, n, 0.5).pvalue))
 
 
 def _trials(spec: str, speeds: list[float] | None) -> dict[tuple, dict]:

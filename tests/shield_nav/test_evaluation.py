@@ -48,6 +48,13 @@ def test_wilson_interval_hand_computed():
     # k = n mirrors k = 0; no trials says nothing.
     assert E.wilson_interval(12, 12) == pytest.approx((1 - 0.242494, 1.0), abs=2e-6)
     assert E.wilson_interval(0, 0) == (0.0, 1.0)
+    # The scipy-based interval equals the closed form above on a grid of counts.
+    for n in range(1, 60, 7):
+        for k in range(n + 1):
+            p, z = k / n, E.Z95
+            d = 1 + z * z / n
+            c, h = (p + z * z / (2 * n)) / d, z / d * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+            assert E.wilson_interval(k, n) == pytest.approx((max(0.0, c - h), min(1.0, c + h)), abs=1e-12)
 
 
 def test_trajectory_metrics_hand_made():
@@ -287,7 +294,9 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     # Resume: finished units are skipped (run_unit is never called) and the table is rebuilt from disk.
     calls = []
     real = E.run_unit
-    monkeypatch.setattr(E, "run_unit", lambda spec: calls.append(spec.key) or real(spec))
+    import shield_nav.evaluation.run as run_module  # evaluate() looks run_unit up there
+
+    monkeypatch.setattr(run_module, "run_unit", lambda spec: calls.append(spec.key) or real(spec))
     s3 = E.evaluate(tiny_cfg(), out1, progress=False)
     assert calls == [] and s3["paper_table"] == s1["paper_table"]
     # A lost unit (e.g. interrupted) is the only one re-run.
@@ -320,7 +329,7 @@ def test_video_writers_without_rendering(tmp_path):
     # The MP4/GIF writer and the no-OpenGL fallback (an animated top-down plot of a recorded trajectory).
     from envs.fields import build_fields
     from envs.scenes import make_scene
-    from shield_nav import plots
+    from shield_nav.evaluation import plots
 
     frames = [np.full((16, 16, 3), 40 * k, dtype=np.uint8) for k in range(4)]
     path = plots.write_video(frames, str(tmp_path / "clip"), fps=10)

@@ -88,3 +88,14 @@ def test_replicates_are_reported_and_pooled(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main([*specs[0], specs[1][0]])  # an A without its B
     assert exc.value.code == 2
+
+
+def test_mcnemar_exact_equals_the_hand_sum_of_binomial_terms():
+    """The scipy-based test against the two-sided fair-coin tail summed by hand, over a grid of counts."""
+    import math
+
+    for a in range(0, 40, 3):
+        for b in range(0, 40, 4):
+            n, k = a + b, min(a, b)
+            want = 1.0 if n == 0 else min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n)
+            assert mcnemar_exact(a, b) == pytest.approx(want, rel=1e-12)

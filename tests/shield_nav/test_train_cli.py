@@ -250,8 +250,8 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeyp
     """Seeds launched together must not share (and overwrite) one run folder."""
     import datetime
 
-    from shield_nav import training
     from shield_nav.training import load_train_config
+    from shield_nav.training import runner as training  # the module that stamps run folders
 
     frozen = datetime.datetime(2026, 1, 2, 3, 4, 5)
 

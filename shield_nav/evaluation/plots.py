@@ -125,7 +125,7 @@ def write_figures(prep: Any, summary: dict, results: list[dict], out_dir: str) -
     """All figures of a run: success vs speed, velocity, and trajectories for the first scenes at the top speed."""
     from envs.fields import build_fields
     from envs.scenes import make_scene
-    from shield_nav.evaluation import nav_config
+    from shield_nav.evaluation.rollout import nav_config
 
     os.makedirs(out_dir, exist_ok=True)
     paths = [os.path.join(out_dir, "success_vs_speed.png"), os.path.join(out_dir, "velocity.png")]

@@ -1,0 +1,95 @@
+"""Per-trial metrics and their aggregation, with Wilson intervals."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from shield_nav.evaluation.config import Z95
+
+
+def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval for k successes in n trials (``scipy.stats.binomtest(k, n).proportion_ci``).
+
+    p = k/n, c = (p + z^2/(2n)) / (1 + z^2/n), h = z / (1 + z^2/n) * sqrt(p(1-p)/n + z^2/(4n^2));
+    the interval is [c - h, c + h] (never outside [0, 1]), at confidence 2 Phi(z) - 1. n = 0 gives (0, 1).
+    """
+    if n <= 0:
+        return 0.0, 1.0
+    from scipy.stats import binomtest, norm
+
+    ci = binomtest(int(k), int(n)).proportion_ci(confidence_level=2.0 * float(norm.cdf(z)) - 1.0, method="wilson")
+    # At k = 0 (k = n) the lower (upper) bound is exactly 0 (1); set it so round-off cannot leave 3e-17.
+    lo = 0.0 if k == 0 else max(0.0, float(ci.low))
+    hi = 1.0 if k == n else min(1.0, float(ci.high))
+    return lo, hi
+
+
+def trajectory_metrics(
+    pos: np.ndarray, speed: np.ndarray, esdf: np.ndarray, phi_start: float, phi_end: float
+) -> dict[str, float]:
+    """Per-trial geometry of one trajectory.
+
+    Inputs: positions (T+1, 3) (start included), speeds |v| (T,) after each step, and the ESDF (T+1,) at those
+    positions.
+
+    path_length = sum_t |p_{t+1} - p_t|; mean_speed = mean_t |v_t|; clearance_mean/min = mean/min of the ESDF;
+    path_ratio = path_length / (Phi(start) - Phi(end)) (Phi: geodesic distance to the goal region; NaN when the
+    trajectory made no geodesic progress).
+    """
+    steps = np.diff(pos, axis=0)
+    length = float(np.linalg.norm(steps, axis=1).sum())
+    progress = phi_start - phi_end
+    return {
+        "path_length": length,
+        "mean_speed": float(np.mean(speed)) if len(speed) else 0.0,
+        "clearance_mean": float(np.mean(esdf)),
+        "clearance_min": float(np.min(esdf)),
+        "geodesic_progress": float(progress),
+        "path_ratio": float(length / progress) if progress > 1e-6 else float("nan"),
+    }
+
+
+def _nanmean(values: list[float]) -> float:
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
+    return float(v.mean()) if len(v) else float("nan")
+
+
+def aggregate(trials: list[dict]) -> dict[str, Any]:
+    """Cell metrics over trials (see the module docstring). Shield rates pool control steps over trials."""
+    n = len(trials)
+    outcomes = [t["outcome"] for t in trials]
+    k = outcomes.count("success")
+    lo, hi = wilson_interval(k, n)
+    succ = [t for t in trials if t["outcome"] == "success"]
+    sh = [t["shield"] for t in trials if t.get("shield")]
+    steps = sum(s["steps"] for s in sh)
+    active = sum(s["active_steps"] for s in sh)
+    out: dict[str, Any] = {
+        "n": n,
+        "successes": k,
+        "success_rate": k / n if n else float("nan"),
+        "sr_lo": lo,
+        "sr_hi": hi,
+        "collision_rate": outcomes.count("collision") / n if n else float("nan"),
+        "timeout_rate": outcomes.count("timeout") / n if n else float("nan"),
+        "oob_rate": outcomes.count("out_of_bounds") / n if n else float("nan"),
+        "vel": _nanmean([t["metrics"]["mean_speed"] for t in succ]),
+        "clearance_mean": _nanmean([t["metrics"]["clearance_mean"] for t in trials]),
+        "clearance_min": float(np.min([t["metrics"]["clearance_min"] for t in trials])) if n else float("nan"),
+        "path_ratio": _nanmean([t["metrics"]["path_ratio"] for t in succ]),
+    }
+    if sh:
+        out.update(
+            {
+                "shield_active": active / steps if steps else 0.0,
+                "corr_mean": sum(s["corr_sum"] for s in sh) / active if active else 0.0,
+                "corr_max": max(s["corr_max"] for s in sh),
+                "relaxed": sum(s["relaxed_steps"] for s in sh) / steps if steps else 0.0,
+                "qp_us_mean": sum(s["solve_us_sum"] for s in sh) / active if active else 0.0,
+                "qp_us_max": max(s["solve_us_max"] for s in sh),
+                "shield_us_mean": sum(s["total_us_sum"] for s in sh) / steps if steps else 0.0,
+            }
+        )
+    return out

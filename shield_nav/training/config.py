@@ -1,0 +1,442 @@
+"""The typed training config (:class:`TrainConfig`), its checks, and its translation into rsl-rl's dict."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import inspect
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from envs.config import ConfigError, load_config, require, to_dict
+from envs.navigation import NavConfig
+from shield_nav.anchored import ANCHOR_TARGETS
+from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
+
+CHECKPOINT_FORMAT_VERSION = 1
+"""Version of the ``infos`` layout inside ``model_<it>.pt``; bump it and add a migration when it changes."""
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+# ------------------------------------------------------------------------------------------------ config
+
+
+@dataclass
+class DistributionConfig:
+    """The actor's output distribution (rsl-rl ``distribution_cfg``)."""
+
+    class_name: str = "GaussianDistribution"
+    """rsl-rl distribution class (``GaussianDistribution``: state-independent learnable std)."""
+    init_std: float = 0.5
+    """Initial action std, in normalised action units (actions live in [-1, 1])."""
+    std_type: str = "scalar"
+    """Std parameterisation: ``scalar`` or ``log``."""
+
+
+@dataclass
+class ActorConfig:
+    """The actor model (rsl-rl ``actor`` dict); the keys are :class:`shield_nav.models.DepthGRUModel` arguments."""
+
+    class_name: str = "shield_nav.models:DepthGRUModel"
+    """Model class, ``module:Class``."""
+    hidden_dims: list[int] = field(default_factory=lambda: [128, 64])
+    """MLP head hidden sizes after the GRU."""
+    activation: str = "elu"
+    """MLP head activation (rsl-rl name)."""
+    obs_normalization: bool = True
+    """Running mean/std normalisation of the 1-D state groups (the depth image is already in [0, 1])."""
+    cnn_channels: list[int] = field(default_factory=lambda: [8, 16, 32])
+    """Output channels of each convolution."""
+    cnn_kernel_sizes: list[int] = field(default_factory=lambda: [4, 3, 3])
+    """Kernel size of each convolution."""
+    cnn_strides: list[int] = field(default_factory=lambda: [4, 1, 1])
+    """Stride of each convolution."""
+    cnn_max_pool: list[bool] = field(default_factory=lambda: [False, True, True])
+    """2 x 2 max pool after each convolution."""
+    cnn_feature_dim: int = 64
+    """Size of the visual feature f_CNN."""
+    rnn_hidden_dim: int = 128
+    """GRU hidden size."""
+    rnn_num_layers: int = 1
+    """Stacked GRU layers."""
+    num_hypotheses: int = 1
+    """Candidate actions of the head; ``K > 1`` acts with the best-scored one and needs
+    ``algorithm.class_name: "shield_nav.distillation:MultiHypothesisDistillation"`` (docs/training.md)."""
+    distribution_cfg: DistributionConfig = field(default_factory=DistributionConfig)
+    """Output distribution."""
+
+
+@dataclass
+class CriticConfig:
+    """The critic model (rsl-rl ``critic`` dict): an MLP over the privileged group only."""
+
+    class_name: str = "MLPModel"
+    """Model class (rsl-rl's ``MLPModel``)."""
+    hidden_dims: list[int] = field(default_factory=lambda: [256, 128, 64])
+    """Hidden sizes."""
+    activation: str = "elu"
+    """Activation (rsl-rl name)."""
+    obs_normalization: bool = True
+    """Running mean/std normalisation of the critic input."""
+
+
+def _default_teacher() -> ActorConfig:
+    return ActorConfig(class_name="MLPModel", hidden_dims=[256, 128, 64])
+
+
+@dataclass
+class AlgorithmConfig:
+    """PPO (or Distillation) hyper-parameters (rsl-rl ``algorithm`` dict).
+
+    Keys the chosen algorithm class does not take are dropped when the runner is built (PPO ignores
+    ``gradient_length`` and ``loss_type``; Distillation ignores the PPO-only keys).
+    """
+
+    class_name: str = "PPO"
+    """Algorithm class: ``PPO``; with ``runner.class_name: DistillationRunner`` rsl-rl's ``Distillation`` or, for a
+    student with ``actor.num_hypotheses > 1``, ``shield_nav.distillation:MultiHypothesisDistillation``."""
+    num_learning_epochs: int = 4
+    """Passes over each rollout."""
+    num_mini_batches: int = 4
+    """Mini-batches per pass (recurrent: envs are split into this many groups; num_envs must be divisible)."""
+    clip_param: float = 0.2
+    """PPO ratio clip epsilon."""
+    gamma: float = 0.99
+    """Discount per 10 ms policy step (horizon ~ 1 / (1 - gamma) = 100 steps = 1 s)."""
+    lam: float = 0.95
+    """GAE lambda."""
+    value_loss_coef: float = 1.0
+    """Weight of the value loss."""
+    entropy_coef: float = 0.005
+    """Weight of the entropy bonus."""
+    learning_rate: float = 3.0e-4
+    """Initial Adam learning rate (adapted by the KL schedule)."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm."""
+    use_clipped_value_loss: bool = True
+    """Clip the value update like the policy ratio."""
+    schedule: str = "adaptive"
+    """``adaptive`` (learning rate follows desired_kl) or ``fixed``."""
+    desired_kl: float = 0.01
+    """Target KL for the adaptive schedule."""
+    normalize_advantage_per_mini_batch: bool = False
+    """Normalise advantages per mini-batch instead of over the whole rollout."""
+    gradient_length: int = 24
+    """Distillation only: steps of behaviour-cloning loss accumulated per gradient step (the student's BPTT window)."""
+    loss_type: str = "mse"
+    """Distillation only: ``mse`` or ``huber`` between the student's mean action and the teacher's."""
+    wta_epsilon: float = 0.05
+    """Multi-hypothesis distillation (and kickstarting, ``anchor_target: expert``) only: share of the loss spread over
+    the losing candidates, in [0, 1)."""
+    selection_coef: float = 0.1
+    """Multi-hypothesis distillation (and kickstarting) only: weight of the cross-entropy that trains the candidate
+    scores."""
+    lr_schedule: str = "constant"
+    """Distillation only: ``constant`` (rsl-rl's) or ``cosine`` from ``learning_rate`` to ``lr_final`` over
+    ``lr_schedule_iterations`` updates; ``cosine`` needs ``shield_nav.distillation:ScheduledDistillation`` (single
+    head) or ``MultiHypothesisDistillation``."""
+    lr_final: float = 1.0e-5
+    """Distillation with ``lr_schedule: cosine`` only: the rate the cosine ends at."""
+    lr_schedule_iterations: int = 0
+    """Distillation with ``lr_schedule: cosine`` only: iterations the cosine takes; 0 = the run's
+    ``max_iterations``."""
+    replay_rollouts: int = 0
+    """Distillation only: past rollouts kept for replay (dataset aggregation); 0 = rsl-rl's fit-once DAgger. Needs
+    ``ScheduledDistillation`` or ``MultiHypothesisDistillation``; each costs ``num_envs x num_steps_per_env``
+    observations of memory (128 x 24 depth images = 74 MB)."""
+    replay_passes: int = 0
+    """Distillation with replay only: kept rollouts fitted per update (each costs about one learning epoch)."""
+    anchor_coef: float = 0.0
+    """``shield_nav.anchored:AnchoredPPO`` only: weight of the anchor term, the distance of the actor's mean action
+    from the reference's on the same states (PPO fine-tuning)."""
+    anchor_target: str = "actor_init"
+    """``shield_nav.anchored:AnchoredPPO`` only: the reference. ``actor_init``: the frozen ``runner.actor_init``
+    actor, ``mean((mu - mu_ref)^2)``. ``expert``: the scripted expert of ``runner.expert`` (kickstarting), DAgger's
+    loss (``wta_loss`` with ``wta_epsilon`` and ``selection_coef`` for a multi-hypothesis actor)."""
+
+
+MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
+"""``runner.algorithm.class_name`` of a student with ``actor.num_hypotheses > 1``."""
+SCHEDULED_ALGORITHM = "shield_nav.distillation:ScheduledDistillation"
+"""``runner.algorithm.class_name`` of a single-head student with a learning-rate schedule."""
+ANCHORED_ALGORITHM = "shield_nav.anchored:AnchoredPPO"
+"""``runner.algorithm.class_name`` of PPO fine-tuning anchored to its ``runner.actor_init`` actor."""
+
+
+def _default_expert_params() -> BaselineConfig:
+    return BaselineConfig(oracle=OracleConfig(episode_goal=True))
+
+
+@dataclass
+class ExpertConfig:
+    """A scripted privileged expert: the teacher of oracle DAgger, or the reference of kickstarting PPO."""
+
+    kind: str = ""
+    """``oracle``: the geodesic-descent oracle of :mod:`shield_nav.baselines` labels every state the student visits
+    (with ``teacher.class_name: "shield_nav.models:ExpertTeacher"`` and ``obs_groups.teacher: [expert]``); no
+    ``teacher_checkpoint`` is needed; with ``AnchoredPPO`` and ``algorithm.anchor_target: expert``, the actions
+    the PPO actor is held near. Empty: the trained teacher of ``teacher_checkpoint``."""
+    params: BaselineConfig = field(default_factory=_default_expert_params)
+    """The expert's parameters (:class:`shield_nav.baselines.BaselineConfig`; ``oracle.episode_goal`` defaults to
+    true here: descend the field of the episode's goal point)."""
+
+
+@dataclass
+class RunnerConfig:
+    """rsl-rl runner train_cfg (everything but the env)."""
+
+    class_name: str = "OnPolicyRunner"
+    """``OnPolicyRunner`` (PPO) or ``DistillationRunner`` (the actor imitates a trained privileged teacher)."""
+
+    num_steps_per_env: int = 24
+    """Rollout length per env per iteration (also the truncated-BPTT window of the GRU)."""
+    save_interval: int = 50
+    """Write ``model_<it>.pt`` every this many iterations."""
+    obs_groups: dict[str, list[str]] = field(
+        default_factory=lambda: {"actor": ["depth", "state"], "critic": ["critic"]}
+    )
+    """Observation sets -> env observation groups."""
+    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    """PPO."""
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    """Actor model."""
+    critic: CriticConfig = field(default_factory=CriticConfig)
+    """Critic model (PPO only)."""
+    teacher: ActorConfig = field(default_factory=_default_teacher)
+    """Distillation only: the teacher model (keys its class does not take, e.g. ``cnn_*`` for ``MLPModel``, are
+    dropped); its weights come from ``teacher_checkpoint``."""
+    teacher_checkpoint: str = ""
+    """Distillation only: the teacher's PPO checkpoint (``model_<it>.pt`` or ``checkpoints/<name>/model.pt``)."""
+    student_init: str = ""
+    """Distillation only, optional: a distillation checkpoint whose *student* weights (and observation normaliser)
+    start this run, e.g. the previous round's ``checkpoints/<f>_distilled/model.pt`` when re-distilling from a longer
+    trained teacher, and its stored curriculum levels when the env count matches. The optimizer and the iteration
+    count start fresh; empty = a randomly initialised student."""
+    actor_init: str = ""
+    """PPO only, optional: a checkpoint whose actor starts this run's actor (PPO fine-tuning of a distilled student):
+    a distillation checkpoint's ``student_state_dict`` (e.g. ``checkpoints/student_3ms/model.pt``) or a PPO
+    checkpoint's ``actor_state_dict``, with its observation normaliser and action std, and its stored curriculum
+    levels when the env count matches. The critic, optimizer and iteration count start fresh."""
+    critic_warmup_iterations: int = 0
+    """PPO only: for the first this many iterations of a new run the actor's parameters are frozen, so the fresh
+    critic learns the values of the loaded actor before its advantages move the policy (needs
+    ``algorithm.schedule: fixed``: with a frozen actor the KL is 0 and the adaptive rule would raise the rate)."""
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    """Optional: a scripted expert as the distillation teacher, or as the kickstarting reference of
+    ``AnchoredPPO`` (see :class:`ExpertConfig`)."""
+    init_at_random_ep_len: bool = True
+    """Start the first rollout at random episode times, to decorrelate the envs."""
+    check_for_nan: bool = True
+    """Fail on NaN observations/rewards (rsl-rl check)."""
+    logger: str = "tensorboard"
+    """rsl-rl log writer (``tensorboard``)."""
+
+
+@dataclass
+class TrainConfig:
+    """One training run: the task, the learner and the bookkeeping."""
+
+    name: str = "run"
+    """Run name, the suffix of the run folder (the config files set it: ``dijkstra_cbf``, ...)."""
+    experiment_name: str = "shield_nav"
+    """Experiment folder under ``log_root``."""
+    log_root: str = "logs"
+    """Root of the run folders (``--log-dir``)."""
+    seed: int = 0
+    """Torch seed (``--seed`` sets it and ``env.seed``)."""
+    device: str = "cpu"
+    """Learner device (``cpu``, ``cuda``, ``cuda:0``); the env is CPU (numpy) either way."""
+    max_iterations: int = 1500
+    """Total PPO iterations of the run; a resumed run continues until it reaches this count."""
+    num_threads: int = 0
+    """Torch intra-op threads; 0 picks the CPUs this process may use (os.sched_getaffinity)."""
+    env: NavConfig = field(default_factory=NavConfig)
+    """The task (``envs.navigation.NavConfig``)."""
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+    """The learner."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Cross-field checks naming the key."""
+        require(self.max_iterations >= 1, f"{prefix}max_iterations", f"must be >= 1, got {self.max_iterations}")
+        require(self.num_threads >= 0, f"{prefix}num_threads", "must be >= 0")
+        require(
+            self.device == "cpu" or self.device.startswith("cuda"),
+            f"{prefix}device",
+            f"must be 'cpu' or 'cuda[:i]', got {self.device!r}",
+        )
+        r = self.runner
+        require(r.num_steps_per_env >= 1, f"{prefix}runner.num_steps_per_env", "must be >= 1")
+        require(r.save_interval >= 1, f"{prefix}runner.save_interval", "must be >= 1")
+        mb = r.algorithm.num_mini_batches
+        require(
+            mb >= 1 and self.env.num_envs % mb == 0,
+            f"{prefix}runner.algorithm.num_mini_batches",
+            f"must divide env.num_envs ({self.env.num_envs}) for the recurrent generator, got {mb}",
+        )
+        require(r.algorithm.schedule in ("adaptive", "fixed"), f"{prefix}runner.algorithm.schedule", "adaptive|fixed")
+        runners = ("OnPolicyRunner", "DistillationRunner")
+        require(
+            r.class_name in runners, f"{prefix}runner.class_name", f"must be one of {runners}, got {r.class_name!r}"
+        )
+        distill = r.class_name == "DistillationRunner"
+        multi = r.actor.num_hypotheses > 1
+        algos = ("PPO", ANCHORED_ALGORITHM)
+        if distill:
+            algos = (MULTI_HYPOTHESIS_ALGORITHM,) if multi else ("Distillation", SCHEDULED_ALGORITHM)
+        got = r.algorithm.class_name
+        require(r.actor.num_hypotheses >= 1, f"{prefix}runner.actor.num_hypotheses", "must be >= 1")
+        require(distill or not multi or r.actor_init, f"{prefix}runner.actor.num_hypotheses",
+                "> 1 only with DistillationRunner or PPO fine-tuning from runner.actor_init")  # fmt: skip
+        anchored = got == ANCHORED_ALGORITHM
+        require(r.algorithm.anchor_coef >= 0.0 and (anchored or r.algorithm.anchor_coef == 0.0),
+                f"{prefix}runner.algorithm.anchor_coef",
+                f"must be >= 0, and > 0 only with runner.algorithm.class_name {ANCHORED_ALGORITHM!r}; got "
+                f"{r.algorithm.anchor_coef} with {got!r}")  # fmt: skip
+        require(not anchored or r.actor_init, f"{prefix}runner.actor_init",
+                f"is required by {ANCHORED_ALGORITHM!r}: it is the actor the fine-tuning starts from")  # fmt: skip
+        require(r.algorithm.anchor_target in ANCHOR_TARGETS, f"{prefix}runner.algorithm.anchor_target",
+                f"must be one of {ANCHOR_TARGETS}, got {r.algorithm.anchor_target!r}")  # fmt: skip
+        kickstart = anchored and r.algorithm.anchor_target == "expert"
+        require(not kickstart or r.expert.kind, f"{prefix}runner.expert.kind",
+                "must be set with runner.algorithm.anchor_target 'expert' (the expert the actor is held near)")
+        require(got in algos, f"{prefix}runner.algorithm.class_name",
+                f"must be one of {algos} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
+                f"{r.actor.num_hypotheses}, got {got!r}")  # fmt: skip
+        require(r.algorithm.lr_schedule in ("constant", "cosine"), f"{prefix}runner.algorithm.lr_schedule",
+                f"must be 'constant' or 'cosine', got {r.algorithm.lr_schedule!r}")  # fmt: skip
+        require(r.algorithm.lr_schedule == "constant" or got in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM),
+                f"{prefix}runner.algorithm.lr_schedule",
+                f"'cosine' needs runner.algorithm.class_name {SCHEDULED_ALGORITHM!r} or {MULTI_HYPOTHESIS_ALGORITHM!r}"
+                f", got {got!r}")  # fmt: skip
+        require(r.algorithm.lr_schedule == "constant" or 0.0 < r.algorithm.lr_final <= r.algorithm.learning_rate,
+                f"{prefix}runner.algorithm.lr_final",
+                f"must be in (0, runner.algorithm.learning_rate = {r.algorithm.learning_rate}], "
+                f"got {r.algorithm.lr_final}")  # fmt: skip
+        require(r.algorithm.lr_schedule_iterations >= 0, f"{prefix}runner.algorithm.lr_schedule_iterations",
+                "must be >= 0 (0 = max_iterations)")  # fmt: skip
+        ours = (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM)
+        rr, rp = r.algorithm.replay_rollouts, r.algorithm.replay_passes
+        require(rr == 0 or got in ours, f"{prefix}runner.algorithm.replay_rollouts",
+                f"> 0 needs runner.algorithm.class_name one of {ours}, got {got!r}")  # fmt: skip
+        require(rr >= 0 and 0 <= rp <= rr and (rr > 0) == (rp > 0), f"{prefix}runner.algorithm.replay_passes",
+                f"needs 0 <= replay_passes <= replay_rollouts, both 0 or both > 0; got {rp} and {rr}")  # fmt: skip
+        require(0.0 <= r.algorithm.wta_epsilon < 1.0, f"{prefix}runner.algorithm.wta_epsilon", "must be in [0, 1)")
+        require(r.algorithm.selection_coef >= 0.0, f"{prefix}runner.algorithm.selection_coef", "must be >= 0")
+        require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
+        require(not distill or not r.actor_init, f"{prefix}runner.actor_init", "only with OnPolicyRunner (PPO)")
+        require(r.critic_warmup_iterations >= 0, f"{prefix}runner.critic_warmup_iterations", "must be >= 0")
+        require(r.critic_warmup_iterations == 0 or (not distill and r.algorithm.schedule == "fixed"),
+                f"{prefix}runner.critic_warmup_iterations",
+                "needs runner.class_name OnPolicyRunner and runner.algorithm.schedule 'fixed'")  # fmt: skip
+        for key in ("student", "teacher") if distill else ("actor", "critic"):
+            require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
+        require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
+        require(r.algorithm.gradient_length >= 1, f"{prefix}runner.algorithm.gradient_length", "must be >= 1")
+        uses_expert_obs = any("expert" in groups for groups in r.obs_groups.values())
+        require(not uses_expert_obs or r.expert.kind, f"{prefix}runner.expert.kind",
+                "must be set when an obs group reads the 'expert' observation")  # fmt: skip
+        if r.expert.kind:
+            require(r.expert.kind in EXPERTS, f"{prefix}runner.expert.kind",
+                    f"unknown expert {r.expert.kind!r}; known: {sorted(EXPERTS)}")  # fmt: skip
+            require(distill or kickstart, f"{prefix}runner.expert.kind",
+                    "only with runner.class_name DistillationRunner, or AnchoredPPO with anchor_target 'expert'")
+            require(not distill or r.obs_groups.get("teacher") == ["expert"], f"{prefix}runner.obs_groups.teacher",
+                    f"must be [expert] with runner.expert.kind {r.expert.kind!r}")  # fmt: skip
+            require(not distill or r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
+                    "must be 'shield_nav.models:ExpertTeacher' with a scripted expert")  # fmt: skip
+        uses_teacher_obs = any("teacher" in groups for groups in r.obs_groups.values())
+        require(not uses_teacher_obs or self.env.local_map.enabled, f"{prefix}env.local_map.enabled",
+                "must be true when an obs group reads the 'teacher' observation")  # fmt: skip
+
+
+def load_train_config(
+    files: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+    overrides: Sequence[str] | dict | None = None,
+    base: TrainConfig | None = None,
+) -> TrainConfig:
+    """Load a :class:`TrainConfig` from YAML file(s) (with ``defaults:`` includes) and dotted overrides.
+
+    Raises:
+        ConfigError: Naming the dotted key of the first unknown key or bad value, before any work.
+    """
+    return load_config(TrainConfig, files=files, overrides=overrides, base=base)
+
+
+def _constructor_names(class_name: str) -> set[str] | None:
+    """Parameter names ``class_name``'s constructor chain takes (None: it takes any keyword).
+
+    A subclass that forwards ``**kwargs`` to its parent (shield_nav.anchored.AnchoredPPO -> PPO) takes what the first
+    class up its MRO without ``**kwargs`` takes; if every ``__init__`` takes ``**kwargs``, anything is passed on.
+    """
+    from rsl_rl.utils import resolve_callable
+
+    names: set[str] = set()
+    for klass in resolve_callable(class_name).__mro__:
+        if "__init__" not in vars(klass):
+            continue
+        params = inspect.signature(vars(klass)["__init__"]).parameters
+        names.update(params)
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            return names
+    return None
+
+
+def check_algorithm_keys(cfg: TrainConfig, keys: Sequence[str] | None = None) -> None:
+    """An algorithm key set away from its default that the chosen algorithm does not take is an error.
+
+    ``runner.algorithm`` holds the parameters of every algorithm (PPO, distillation, multi-hypothesis, anchored);
+    the runner passes each class only what its constructor takes, so without this check e.g.
+    ``--set runner.algorithm.wta_epsilon=0.9`` on plain PPO would train and drop the key without a word.
+    """
+    algo = cfg.runner.algorithm
+    names = _constructor_names(algo.class_name)
+    if names is None:
+        return
+    defaults = AlgorithmConfig()
+    for f in dataclasses.fields(AlgorithmConfig):
+        if f.name == "class_name" or f.name in names or (keys is not None and f.name not in keys):
+            continue
+        if keys is not None or getattr(algo, f.name) != getattr(defaults, f.name):
+            raise ConfigError(f"config key 'runner.algorithm.{f.name}': {algo.class_name} does not take it (set to "
+                              f"{getattr(algo, f.name)!r}); it applies to another algorithm class")  # fmt: skip
+
+
+def _accepted(class_name: str, kwargs: dict) -> dict:
+    """``kwargs`` restricted to what ``class_name``'s constructor takes (all of them if it takes ``**kwargs``)."""
+    names = _constructor_names(class_name)
+    if names is None:
+        return kwargs
+    return {k: v for k, v in kwargs.items() if k in names or k == "class_name"}
+
+
+def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
+    """The plain ``train_cfg`` dict the rsl-rl runner takes (a fresh copy: rsl-rl may mutate it).
+
+    PPO gets ``actor``/``critic``; distillation gets ``student`` (the ``actor`` section: the deployable depth model)
+    and ``teacher``. Model and algorithm keys their classes do not take are dropped.
+    """
+    d = to_dict(cfg.runner)
+    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init", "expert",
+                "actor_init", "critic_warmup_iterations"):
+        d.pop(key)
+    teacher = d.pop("teacher")
+    if cfg.runner.class_name == "DistillationRunner":
+        d["student"] = d.pop("actor")
+        d["teacher"] = teacher
+        d.pop("critic")
+    if d["algorithm"]["lr_schedule_iterations"] == 0:
+        d["algorithm"]["lr_schedule_iterations"] = cfg.max_iterations
+    if d["algorithm"]["class_name"] in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM):
+        d["algorithm"]["seed"] = cfg.seed  # the draw of replayed rollouts
+    for key in ("actor", "critic", "student", "teacher", "algorithm"):
+        if key in d:
+            d[key] = _accepted(d[key]["class_name"], d[key])
+    d["experiment_name"] = cfg.experiment_name
+    d["run_name"] = cfg.name
+    d["seed"] = cfg.seed
+    return copy.deepcopy(d)
+
+
+# ------------------------------------------------------------------------------------------------ runner

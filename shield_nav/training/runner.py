@@ -1,0 +1,481 @@
+"""A training run: runners with versioned checkpoints, the env, run folders, resume, signals, exports, the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import datetime
+import glob
+import math
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from rsl_rl.env import VecEnv
+from rsl_rl.runners import DistillationRunner, OnPolicyRunner
+
+from envs.config import ConfigError, to_dict, to_yaml
+from shield_nav.baselines import EXPERTS
+from shield_nav.training.config import (
+    CHECKPOINT_FORMAT_VERSION,
+    REPO_ROOT,
+    TrainConfig,
+    check_algorithm_keys,
+    load_train_config,
+    rsl_rl_train_cfg,
+)
+
+
+class _VersionedSave:
+    """Mixin over an rsl-rl runner: ``save`` writes versioned ``infos`` (format, resolved config, totals)."""
+
+    def __init__(self, env: VecEnv, train_cfg: dict, log_dir: str | None, device: str, config: TrainConfig) -> None:
+        """Build the stock runner; ``config`` is stored (resolved) in every checkpoint."""
+        super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+        self.config_dict = to_dict(config)
+
+    def save(self, path: str, infos: dict | None = None) -> None:
+        """Save like rsl-rl, with ``infos = {format_version, config, logger totals, versions, ...}``."""
+        full = {
+            "format_version": CHECKPOINT_FORMAT_VERSION,
+            "config": self.config_dict,
+            "tot_timesteps": int(self.logger.tot_timesteps),
+            "tot_time": float(self.logger.tot_time),
+            "torch_version": torch.__version__,
+            "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
+        }
+        if hasattr(self.env, "curriculum_levels"):
+            full["curriculum_levels"] = self.env.curriculum_levels  # restored by --resume
+        full.update(infos or {})
+        super().save(path, infos=full)
+
+
+class ShieldNavRunner(_VersionedSave, OnPolicyRunner):
+    """rsl-rl's ``OnPolicyRunner`` (PPO); only ``save`` differs: every checkpoint carries versioned ``infos``."""
+
+
+class ShieldNavDistillationRunner(_VersionedSave, DistillationRunner):
+    """rsl-rl's ``DistillationRunner`` (student imitates teacher, DAgger-style); versioned ``infos`` as above."""
+
+
+def make_runner(env: VecEnv, cfg: TrainConfig, log_dir: str | None, device: str) -> OnPolicyRunner:
+    """The runner of ``cfg.runner.class_name`` over ``env``."""
+    cls = ShieldNavDistillationRunner if cfg.runner.class_name == "DistillationRunner" else ShieldNavRunner
+    return cls(env, rsl_rl_train_cfg(cfg), log_dir=log_dir, device=device, config=cfg)
+
+
+def read_checkpoint_infos(path: str | os.PathLike) -> dict:
+    """The ``infos`` of a checkpoint, migrated to the current format (``ValueError`` if unknown or unreadable)."""
+    ckpt = check_checkpoint(path, "checkpoint")
+    infos = ckpt.get("infos") or {}
+    version = infos.get("format_version")
+    if version is None:
+        raise ValueError(f"{path}: no format_version in infos; not written by shield_nav.training")
+    if version > CHECKPOINT_FORMAT_VERSION:
+        raise ValueError(f"{path}: format_version {version} is newer than this code ({CHECKPOINT_FORMAT_VERSION})")
+    # Version 1 is current; future migrations go here (if version == 1: ...).
+    return infos
+
+
+class _StopTraining(Exception):
+    """Raised at an iteration boundary after SIGINT/SIGTERM."""
+
+
+class _StopFlag:
+    """SIGINT/SIGTERM handler: the first signal asks to stop after the current iteration, a second one aborts."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._old[sig] = signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt  # second signal: abort now, without saving
+        self.signum = signum
+        print(f"\n[train] {signal.Signals(signum).name}: saving a checkpoint after this iteration", flush=True)
+
+
+# ------------------------------------------------------------------------------------------------ run
+
+
+def configure_threads(num_threads: int) -> int:
+    """Set torch's intra-op threads (0: the CPUs this process may use) and one inter-op thread; return the count."""
+    n = num_threads or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    torch.set_num_threads(n)
+    with contextlib.suppress(RuntimeError):  # only allowed before the first parallel op; harmless to skip
+        torch.set_num_interop_threads(1)  # PPO has no independent ops to overlap
+    return n
+
+
+def make_env(cfg: TrainConfig) -> VecEnv:
+    """The rsl-rl VecEnv of the task (CPU, numpy inside; tensors on the learner device)."""
+    from envs.navigation import NavigationEnv
+    from envs.rsl_rl import RslRlVecEnv
+
+    expert = None
+    if cfg.runner.expert.kind:
+        expert = EXPERTS[cfg.runner.expert.kind](cfg.runner.expert.params)
+    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert)
+
+
+def _randomize_episode_lengths(env: VecEnv) -> None:
+    """Start each env at a uniform random time of its episode (rsl-rl's ``init_at_random_ep_len``).
+
+    Done here because rsl-rl's runner calls ``int(env.max_episode_length)``, which fails for the task's
+    per-env limits (N,); this draws ``episode_length_buf[i] ~ U{0, ..., max_episode_length[i] - 1}``.
+    """
+    limit = torch.as_tensor(env.max_episode_length, dtype=torch.float32).expand(env.num_envs)
+    env.episode_length_buf = (torch.rand(env.num_envs) * limit).long()
+
+
+def _new_run_dir(cfg: TrainConfig) -> str:
+    """A fresh ``<log_root>/<experiment>/<stamp>_<name>`` folder, claimed atomically.
+
+    Runs of the same config started within the same second (e.g. several seeds launched together) would otherwise
+    share one folder and overwrite each other's checkpoints: the second and later get ``_2``, ``_3``, ...
+    """
+    stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    base = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{cfg.name}")
+    os.makedirs(os.path.dirname(base), exist_ok=True)
+    path, k = base, 1
+    while True:
+        try:
+            os.mkdir(path)  # fails if another run claimed it first
+            break
+        except FileExistsError:
+            k += 1
+            path = f"{base}_{k}"
+    os.makedirs(os.path.join(path, "params"), exist_ok=True)
+    return path
+
+
+def check_device(device: str) -> None:
+    """Fail before any folder is made if ``device`` names CUDA that this torch build or machine does not have."""
+    if not device.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        build = "a CPU-only build" if torch.version.cuda is None else f"a CUDA {torch.version.cuda} build"
+        raise ConfigError(f"config key 'device': {device!r} asked, but no CUDA device is usable here (torch "
+                          f"{torch.__version__} is {build}); use --device cpu")  # fmt: skip
+    index = int(device.split(":", 1)[1]) if ":" in device else 0
+    if index >= torch.cuda.device_count():
+        raise ConfigError(f"config key 'device': {device!r} asked, but only {torch.cuda.device_count()} CUDA "
+                          "device(s) are visible")  # fmt: skip
+
+
+def check_checkpoint(path: str | os.PathLike, what: str) -> dict:
+    """Load a checkpoint on the CPU, or fail with a message that names it and the flag/key it came from."""
+    if not os.path.isfile(path):
+        raise ConfigError(f"{what}: no such file {str(path)!r}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # any reader error means the same thing to the user: unreadable
+        size = os.path.getsize(path)
+        raise ConfigError(f"{what}: {str(path)!r} ({size} bytes) is not a readable torch checkpoint, e.g. truncated "
+                          f"by an interrupted copy or save ({type(err).__name__}: {err})") from None  # fmt: skip
+    if not isinstance(ckpt, dict):
+        raise ConfigError(f"{what}: {str(path)!r} holds a {type(ckpt).__name__}, not a checkpoint dict")
+    return ckpt
+
+
+def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> None:
+    """Fail before any work if a file the run needs is missing or unreadable, or the device is not there."""
+    check_device(cfg.device)
+    if resume is not None:
+        ckpt = check_checkpoint(resume, "--resume")
+        if "iter" not in ckpt:
+            raise ConfigError(f"--resume: {str(resume)!r} has no iteration count: not a model_<it>.pt of a run")
+    distill = cfg.runner.class_name == "DistillationRunner"
+    if distill and resume is None and not cfg.runner.expert.kind and not os.path.isfile(cfg.runner.teacher_checkpoint):
+        raise ConfigError(
+                f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
+                "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
+            )
+    if distill and resume is None and cfg.runner.student_init and not os.path.isfile(cfg.runner.student_init):
+        raise ConfigError(f"config key 'runner.student_init': no such file {cfg.runner.student_init!r}")
+    if resume is None and cfg.runner.actor_init and not os.path.isfile(cfg.runner.actor_init):
+        raise ConfigError(f"config key 'runner.actor_init': no such file {cfg.runner.actor_init!r}")
+
+
+def _init_student(runner: Any, path: str, device: str) -> dict:
+    """Load a checkpoint's student weights into the runner's student; return the checkpoint's ``infos``.
+
+    A single-head student initialises a multi-hypothesis one: every candidate starts as its head
+    (:func:`shield_nav.models.expand_single_head`), so training starts from the single-head policy.
+    """
+    from shield_nav.models import expand_single_head
+
+    student = runner.alg._raw_student
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    weights = ckpt.get("student_state_dict")
+    if weights is None:
+        raise ConfigError(f"config key 'runner.student_init': {path!r} holds no student (not a distillation run)")
+    single = not any(key.startswith("mlp.0.0.") for key in weights)
+    if getattr(student, "num_hypotheses", 1) > 1 and single:
+        weights = expand_single_head(weights, student)
+        print(f"[train] single-head student expanded to {student.num_hypotheses} hypotheses", flush=True)
+    student.load_state_dict(weights)
+    return ckpt.get("infos") or {}
+
+
+def _restore_levels(env: Any, levels: list[int] | None) -> None:
+    """Put the envs back on the curriculum levels a checkpoint stored (same env count only)."""
+    if levels is not None and hasattr(env, "set_curriculum_levels") and len(levels) == env.num_envs:
+        env.set_curriculum_levels(levels)
+        print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
+
+
+def episode_means(ep_extras: list[dict], keys: tuple[str, ...]) -> dict[str, tuple[float, int]]:
+    """Mean and count of each key over the episodes that ended this iteration (rsl-rl's ``ep_extras``)."""
+    out = {}
+    for key in keys:
+        vals = [torch.as_tensor(e[key], dtype=torch.float64).reshape(-1) for e in ep_extras if key in e]
+        flat = torch.cat(vals) if vals else torch.zeros(0, dtype=torch.float64)
+        out[key] = (float(flat.mean()) if flat.numel() else math.nan, int(flat.numel()))
+    return out
+
+
+def progress_line(logger: Any, it: int, total_it: int, extras: dict[str, tuple[float, int]]) -> str:
+    """One compact line per iteration: iteration, env-steps/s, success, curriculum level, elapsed and ETA."""
+    done = it + 1
+    fps = logger.tot_timesteps / logger.tot_time if logger.tot_time > 0 else 0.0
+    eta = logger.tot_time / max(done, 1) * max(total_it - done, 0)
+    succ, n_ep = extras.get("episode/success", (math.nan, 0))
+    level, _ = extras.get("curriculum/mean_level", (math.nan, 0))
+
+    def hms(t: float) -> str:
+        t = int(t)
+        return f"{t // 3600}:{t // 60 % 60:02d}:{t % 60:02d}"
+
+    succ_s = f"{100 * succ:5.1f} % of {n_ep:3d} ep" if n_ep else "   - (no episode ended)"
+    level_s = f"{level:5.2f}" if math.isfinite(level) else "  -  "
+    return (f"[train] it {done:>{len(str(total_it))}}/{total_it} | {fps:7.0f} env-steps/s | success {succ_s} | "
+            f"level {level_s} | {hms(logger.tot_time)} elapsed, ETA {hms(eta)}")  # fmt: skip
+
+
+def train(
+    cfg: TrainConfig,
+    resume: str | os.PathLike | None = None,
+    env_factory: Callable[[TrainConfig], VecEnv] = make_env,
+) -> str:
+    """Train (or resume) one run; return its folder.
+
+    Args:
+        cfg: The resolved config.
+        resume: A ``model_<it>.pt`` to continue from: weights, optimizer, normalisers and the iteration count
+            are restored, logging continues in the checkpoint's folder (tensorboard curves continue at ``it + 1``),
+            and training runs until ``cfg.max_iterations`` iterations exist in total.
+        env_factory: Builds the VecEnv from ``cfg`` (tests pass a small synthetic env).
+    """
+    rank = int(os.getenv("RANK", "0"))
+    world = int(os.getenv("WORLD_SIZE", "1"))
+    device = cfg.device
+    if world > 1:  # torchrun: one process per GPU; rsl-rl's runner initialises NCCL and averages gradients
+        if not device.startswith("cuda"):
+            raise ConfigError("config key 'device': multi-process training (WORLD_SIZE > 1) needs 'cuda'")
+        device = f"cuda:{int(os.getenv('LOCAL_RANK', '0'))}"
+    check_files(cfg, resume)
+    threads = configure_threads(cfg.num_threads)
+    torch.manual_seed(cfg.seed + rank)
+    print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)
+
+    if resume is not None and glob.glob(os.path.join(os.path.dirname(os.path.abspath(resume)), "events.out.tfevents*")):
+        run_dir = os.path.dirname(os.path.abspath(resume))
+    elif resume is not None:
+        # A packaged policy (checkpoints/<name>/model.pt) has no run folder: continue in a new one under log_dir.
+        run_dir = _new_run_dir(cfg) if rank == 0 else None
+    else:
+        run_dir = _new_run_dir(cfg) if rank == 0 else None
+    if rank == 0:
+        os.makedirs(os.path.join(run_dir, "params"), exist_ok=True)
+        with open(os.path.join(run_dir, "params", "config.yaml"), "w", encoding="utf-8") as f:
+            f.write(to_yaml(cfg))
+        print(f"[train] run folder: {run_dir}", flush=True)
+
+    t0 = time.perf_counter()
+    env = env_factory(dataclasses.replace(cfg, device=device))
+    print(f"[train] env: {env.num_envs} envs built in {time.perf_counter() - t0:.1f} s", flush=True)
+    runner = make_runner(env, cfg, log_dir=run_dir, device=device)
+    runner.add_git_repo_to_log(REPO_ROOT)
+
+    start_it = 0
+    if cfg.runner.class_name == "DistillationRunner" and cfg.runner.expert.kind:
+        runner.alg.teacher_loaded = True  # the scripted expert has no weights to load
+        print(f"[train] teacher: the scripted '{cfg.runner.expert.kind}' expert (obs group 'expert')", flush=True)
+    if cfg.runner.class_name == "DistillationRunner" and resume is None and not cfg.runner.expert.kind:
+        runner.load(cfg.runner.teacher_checkpoint, map_location=device)  # actor weights -> teacher only
+        print(f"[train] teacher loaded from {cfg.runner.teacher_checkpoint}", flush=True)
+    if cfg.runner.class_name == "DistillationRunner" and resume is None and cfg.runner.student_init:
+        infos = _init_student(runner, cfg.runner.student_init, device)
+        print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
+        _restore_levels(env, infos.get("curriculum_levels"))
+    if cfg.runner.actor_init and resume is None:
+        ckpt = torch.load(cfg.runner.actor_init, map_location=device, weights_only=False)
+        weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict")
+        if weights is None:
+            raise ConfigError(f"config key 'runner.actor_init': {cfg.runner.actor_init!r} holds no actor or student")
+        runner.alg._raw_actor.load_state_dict(weights)
+        print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
+        _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"))
+    if resume is not None:
+        # A scripted expert saved no teacher weights (an empty dict): load everything else.
+        load_cfg = {"student": True, "optimizer": True, "iteration": True} if cfg.runner.expert.kind else None
+        infos = runner.load(str(resume), load_cfg=load_cfg, map_location=device) or {}
+        start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
+        runner.current_learning_iteration = start_it
+        runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))
+        runner.logger.tot_time = float(infos.get("tot_time", 0.0))
+        _restore_levels(env, infos.get("curriculum_levels"))
+        print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
+    remaining = cfg.max_iterations - start_it
+    # Critic warm-up: iterations [0, warmup_end) run with a frozen actor (also when a run resumes inside them).
+    warmup_end = cfg.runner.critic_warmup_iterations if cfg.runner.class_name == "OnPolicyRunner" else 0
+    actor_params = list(runner.alg._raw_actor.parameters()) if start_it < warmup_end else []
+    for p in actor_params:
+        p.requires_grad_(False)
+    if actor_params:
+        print(f"[train] critic warm-up: the actor is frozen until iteration {warmup_end}", flush=True)
+
+    # Stop cleanly at the next iteration boundary on SIGINT/SIGTERM: rsl-rl's logger.log runs once per iteration,
+    # right after the update, so wrapping it gives a hook without copying the runner's loop.
+    stop = _StopFlag()
+    log_fn = runner.logger.log
+
+    def log_then_check(*args: Any, **kwargs: Any) -> None:
+        # The logger's ETA divides tot_time by the iterations since start_it; tot_time is restored on --resume and
+        # spans the whole run, so count from iteration 0 (else a resumed run prints an ETA of days).
+        if "start_it" in kwargs:
+            kwargs["start_it"] = 0
+        extras = episode_means(runner.logger.ep_extras, ("episode/success", "curriculum/mean_level"))
+        log_fn(*args, **kwargs)
+        print(progress_line(runner.logger, kwargs.get("it", runner.current_learning_iteration),
+                            kwargs.get("total_it", cfg.max_iterations), extras), flush=True)  # fmt: skip
+        if actor_params and runner.current_learning_iteration + 1 >= warmup_end:
+            for p in actor_params:
+                p.requires_grad_(True)
+            actor_params.clear()
+            print(f"[train] critic warm-up done: the actor trains from iteration {warmup_end}", flush=True)
+        if stop.signum is not None:
+            raise _StopTraining
+
+    runner.logger.log = log_then_check  # type: ignore[method-assign]
+    interrupted = False
+    stop.install()
+    try:
+        if remaining > 0:
+            if cfg.runner.init_at_random_ep_len and resume is None:
+                _randomize_episode_lengths(env)
+            runner.learn(remaining, init_at_random_ep_len=False)
+        else:
+            print(f"[train] nothing to do: {start_it} >= max_iterations ({cfg.max_iterations})", flush=True)
+    except _StopTraining:
+        interrupted = True
+    finally:
+        stop.restore()
+
+    if rank == 0:
+        it = runner.current_learning_iteration
+        if interrupted:
+            runner.save(os.path.join(run_dir, f"model_{it}.pt"), infos={"interrupted": interrupted})
+        runner.logger.stop_logging_writer()
+        if runner.logger.writer is not None and hasattr(runner.logger.writer, "close"):
+            runner.logger.writer.close()
+        from shield_nav.models import DepthGRUModel, export_policy
+
+        policy = runner.alg.get_policy()
+        if isinstance(policy, DepthGRUModel):
+            try:
+                paths = export_policy(policy, os.path.join(run_dir, "exported"))
+            except Exception:
+                # The checkpoint is on disk. A known cause: TorchScript re-reads the model's source file, so editing
+                # shield_nav/models.py while a run trains can break the run's final export (not its weights).
+                print(f"[train] the export failed; model_{it}.pt is saved. Re-export it with: python -m "
+                      f"shield_nav.package {os.path.join(run_dir, f'model_{it}.pt')} --name <policy name>",
+                      file=sys.stderr, flush=True)  # fmt: skip
+                raise
+            print(f"[train] exported {paths['jit']} and {paths['onnx']}", flush=True)
+        else:  # a privileged teacher: not deployable (it reads the local ESDF map), so nothing is exported
+            print(f"[train] not exported: the policy is a {type(policy).__name__}, not a DepthGRUModel", flush=True)
+        print(f"[train] {'interrupted' if interrupted else 'finished'} at iteration {it}: {run_dir}", flush=True)
+    if interrupted:
+        raise SystemExit(128 + int(stop.signum or signal.SIGINT))
+    return run_dir
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``train.py`` argument parser."""
+    p = argparse.ArgumentParser(prog="train.py", description="Train the depth CNN+GRU policy with rsl-rl PPO.")
+    p.add_argument("--config", help="configs/train/<name>.yaml (required unless --resume)")
+    p.add_argument("--set", nargs="+", action="extend", default=[], metavar="A.B=V",
+                   help="dotted overrides, e.g. env.num_envs=32 (repeatable; all apply, in order)")  # fmt: skip
+    p.add_argument("--num-envs", type=int, help="shorthand for --set env.num_envs=N")
+    p.add_argument("--max-iterations", type=int, help="total iterations of the run")
+    p.add_argument("--seed", type=int, help="sets seed and env.seed")
+    p.add_argument("--device", help="cpu | cuda | cuda:i")
+    p.add_argument("--log-dir", help="root of the run folders (default: logs)")
+    p.add_argument("--resume", help="model_<it>.pt to continue (its run folder and stored config are reused)")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
+    overrides = list(args.set)
+    if args.num_envs is not None:
+        overrides.append(f"env.num_envs={args.num_envs}")
+    if args.max_iterations is not None:
+        overrides.append(f"max_iterations={args.max_iterations}")
+    if args.seed is not None:
+        overrides += [f"seed={args.seed}", f"env.seed={args.seed}"]
+    if args.device is not None:
+        overrides.append(f"device={args.device}")
+    if args.log_dir is not None:
+        overrides.append(f"log_root={args.log_dir}")
+    if args.resume is not None:
+        check_checkpoint(args.resume, "--resume")
+        if args.config is not None:
+            print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
+        stored = read_checkpoint_infos(args.resume)["config"]
+        cfg = load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
+        # The stored config is what ran; only the keys given now are checked against the algorithm.
+        given = [o.split("=", 1)[0].removeprefix("runner.algorithm.") for o in overrides
+                 if o.startswith("runner.algorithm.")]  # fmt: skip
+        check_algorithm_keys(cfg, given)
+        return cfg
+    if args.config is None:
+        raise ConfigError("--config is required (or --resume)")
+    cfg = load_train_config(files=args.config, overrides=overrides)
+    check_algorithm_keys(cfg)
+    if cfg.runner.algorithm.lr_schedule_iterations == 0:
+        # Frozen into the stored config, so a resume that extends --max-iterations keeps the schedule it started.
+        cfg.runner.algorithm.lr_schedule_iterations = cfg.max_iterations
+    return cfg
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python train.py ...``: parse, resolve the config (failing fast on bad keys), train."""
+    args = build_parser().parse_args(argv)
+    try:
+        cfg = config_from_args(args)
+        check_files(cfg, args.resume)
+    except (ConfigError, ValueError) as err:
+        print(f"train.py: error: {err}", file=sys.stderr)
+        return 2
+    train(cfg, resume=args.resume)
+    return 0

@@ -143,6 +143,9 @@ class Controller:
 
     privileged: bool = False
     """Whether the controller reads privileged map information (the table labels such rows)."""
+    reads_depth: bool = True
+    """Whether the controller reads the depth image; if not (and no shield is in the loop) the harness skips the
+    ray casting for its row."""
 
     def reset(self, env: Any) -> None:
         """Start a new batch of trials in ``env``."""
@@ -154,6 +157,8 @@ class Controller:
 
 class GoalSeeker(Controller):
     """Straight to the goal at the target speed: v_des = v_target (g - p) / |g - p|, yaw towards the goal."""
+
+    reads_depth = False
 
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg
@@ -182,6 +187,7 @@ class OracleController(Controller):
     """
 
     privileged = True
+    reads_depth = False
 
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg

@@ -169,6 +169,7 @@ class PlannerController:
     """The planning expert as an evaluation controller (row ``expert``; see the module docstring)."""
 
     privileged = True
+    reads_depth = False
 
     def __init__(self, cfg: Any) -> None:  # noqa: D107
         self.cfg = cfg

@@ -11,8 +11,10 @@ from shield_nav.training import load_train_config, rsl_rl_train_cfg
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-@pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(REPO, "configs", "train", "*.yaml"))))
+@pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(REPO, "configs", "train", "*.yaml")))
+                         + sorted(glob.glob(os.path.join(REPO, "configs", "experiments", "*.yaml"))))  # fmt: skip
 def test_train_configs_load(path):
+    """The release configs and the experiments' (whose start checkpoints may have left the tree) load strictly."""
     cfg = load_train_config(path)
     d = rsl_rl_train_cfg(cfg)
     if cfg.runner.class_name == "DistillationRunner":

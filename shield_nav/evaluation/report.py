@@ -39,7 +39,7 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
         lines.append(
             "MISSING policy rows (no checkpoint): " + ", ".join(f"{k} ({v})" for k, v in prep.missing.items()) + "."
         )
-    lines += [f"WARNING (marked !): {m}." for m in prep.speed_flags.values()]
+    lines += [f"WARNING (marked !): {m}." for m in dict.fromkeys(prep.speed_flags.values())]  # once per policy
     done, total = summary.get("units_done", 0), summary.get("units_total", 0)
     if done < total:
         lines.append(f"PARTIAL: {done} of {total} units finished; re-run the same command to complete the table.")

@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from envs.config import to_dict
+from shield_nav.baselines import BASELINES
 from shield_nav.evaluation.config import (
     EVAL_FORMAT_VERSION,
     POLICY_CONTROLLERS,
@@ -106,6 +107,8 @@ def plan_units(prep: Prepared) -> list[UnitSpec]:
         env = pol and pol.train_env
         if row.controller == "teacher":  # the map replaces the camera; render only if the shield needs depth
             env = {**env, "local_map": {**env["local_map"], "enabled": True}, "render_depth": bool(row.shield)}
+        elif pol is None and not row.shield and not getattr(BASELINES[row.controller], "reads_depth", True):
+            env = {"render_depth": False}  # reads no image and no shield in the loop: skip the ray casting
         for v in cfg.speeds:
             for k in cfg.scene_indices:
                 units.append(UnitSpec(unit_key(rname, cfg.scenes.family, k, v), rname, dataclasses.asdict(row),

@@ -5,6 +5,7 @@ The tiny runs fly the goal-seeking baseline at 9 m/s in the hardest ablation sce
 few hundred control steps, so a run takes seconds.
 """
 
+import dataclasses
 import json
 import math
 import os
@@ -458,3 +459,16 @@ def test_row_registry_is_yaml_with_the_paper_names_and_rejects_unknown_keys(tmp_
     bad.write_text("row: {}\n")
     with pytest.raises(E.EvalError, match=r"unknown top-level key\(s\) \['row'\]"):
         E.load_registry(str(bad))
+
+
+def test_rows_that_read_no_image_skip_the_ray_casting_and_fly_the_same_trials(tmp_path):
+    cfg = tiny_cfg("configurations=[oracle,goal_seeking,expert,reactive,shield_only]")
+    envs = {u.row_name: u.policy_env for u in E.plan_units(E.prepare(cfg))}
+    assert envs["oracle"] == envs["goal_seeking"] == envs["expert"] == {"render_depth": False}
+    assert envs["reactive"] is None and envs["shield_only"] is None  # the image or the shield's point cloud is read
+    # Rendering is observation only: the oracle flies the same trial with and without it.
+    (spec,) = E.plan_units(E.prepare(tiny_cfg("configurations=[oracle]")))
+    off = E.run_unit(spec)
+    on = E.run_unit(dataclasses.replace(spec, policy_env=None))
+    assert [t["outcome"] for t in off["trials"]] == [t["outcome"] for t in on["trials"]]
+    assert [t["steps"] for t in off["trials"]] == [t["steps"] for t in on["trials"]]

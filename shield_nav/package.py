@@ -17,7 +17,6 @@ the local ESDF map) is packaged without exports: it cannot fly from depth, it is
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import shutil
@@ -29,16 +28,9 @@ from tensordict import TensorDict
 from envs.config import to_yaml
 from envs.navigation import STATE_DIM
 from shield_nav.compare_runs import read_events, write_csv
+from shield_nav.evaluation.policies import _sha256
 from shield_nav.models import DepthGRUModel, export_policy
 from shield_nav.training import TrainConfig, load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
-
-
-def _sha256(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainConfig, dict]:

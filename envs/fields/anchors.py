@@ -221,7 +221,8 @@ class GoalAnchorFields:
         ids = (np.asarray(scene_ids, dtype=np.int64) * self.count + np.asarray(anchor_ids, dtype=np.int64)).ravel()
         if ids.size and (ids.min() < 0 or ids.max() >= self._ready.size):
             raise ValueError(f"(scene, anchor) pair out of range: {self.num_scenes} scenes x {self.count} anchors")
-        self._ensure_fields(ids)
+        if not self._ready[ids].all():  # per-step path: one gather when every field asked for is built
+            self._ensure_fields(ids)
         pts = np.ascontiguousarray(points, dtype=np.float64)
         out = np.empty(len(ids))
         _trilinear(

@@ -137,8 +137,7 @@ def build_fields(
     Raises:
         ValueError: Non-positive resolution, negative vehicle radius, or a goal region with no traversable node.
     """
-    if not (math.isfinite(resolution) and resolution > 0):
-        raise ValueError(f"field resolution must be a positive number of metres, got {resolution}")
+    _check_resolution(resolution)
     if not (math.isfinite(vehicle_radius) and vehicle_radius >= 0):
         raise ValueError(f"vehicle_radius must be a non-negative number of metres, got {vehicle_radius}")
     key = cache_key(scene, resolution, vehicle_radius, stencil)
@@ -160,6 +159,11 @@ def build_fields(
     return fields
 
 
+def _check_resolution(resolution: float) -> None:
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"field resolution must be a positive number of metres, got {resolution}")
+
+
 def scene_field_stack(
     scenes: Sequence[Scene],
     resolution: float = DEFAULT_RESOLUTION,
@@ -174,8 +178,7 @@ def scene_field_stack(
     the scenes it flies; otherwise all are built now.
     """
     scenes = list(scenes)
-    if not (math.isfinite(resolution) and resolution > 0):
-        raise ValueError(f"field resolution must be a positive number of metres, got {resolution}")
+    _check_resolution(resolution)
 
     def build(s: int) -> SceneFields:
         return build_fields(scenes[s], resolution, vehicle_radius, cache_dir=cache_dir, stencil=stencil)

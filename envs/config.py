@@ -69,20 +69,7 @@ def load_config(
         for path in files:
             cfg = _merge(cfg, _read_yaml_with_defaults(path), str(path))
     if overrides:
-        try:
-            if isinstance(overrides, Mapping):
-                dot = OmegaConf.create()
-                for k, v in overrides.items():
-                    OmegaConf.update(dot, k, v, force_add=True)
-            else:
-                items = list(overrides)
-                for item in items:
-                    if "=" not in item:
-                        raise ConfigError(f"override '{item}' is not of the form a.b=value")
-                dot = OmegaConf.from_dotlist(items)
-        except OmegaConfBaseException as err:
-            raise ConfigError(_format_omegaconf_error(err, "overrides")) from None
-        cfg = _merge(cfg, dot, "overrides")
+        cfg = _merge(cfg, _overrides_config(overrides), "overrides")
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ConfigError(f"config key '{missing[0]}' is required but was not set")
@@ -92,6 +79,43 @@ def load_config(
         raise ConfigError(_format_omegaconf_error(err, "")) from None
     validate(obj)
     return obj  # type: ignore[return-value]
+
+
+def _overrides_config(overrides: Iterable[str] | Mapping[str, Any]) -> DictConfig:
+    """Dotted overrides (``["a.b=1"]`` or ``{"a.b": 1}``) as one untyped config layer."""
+    try:
+        if isinstance(overrides, Mapping):
+            dot = OmegaConf.create()
+            for k, v in overrides.items():
+                OmegaConf.update(dot, k, v, force_add=True)
+            return dot
+        items = list(overrides)
+        for item in items:
+            if "=" not in item:
+                raise ConfigError(f"override '{item}' is not of the form a.b=value")
+        return OmegaConf.from_dotlist(items)
+    except OmegaConfBaseException as err:
+        raise ConfigError(_format_omegaconf_error(err, "overrides")) from None
+
+
+def select_raw(
+    key: str,
+    files: Iterable[str | os.PathLike] | str | os.PathLike | None = None,
+    overrides: Iterable[str] | Mapping[str, Any] | None = None,
+    default: Any = None,
+) -> Any:
+    """The value the layers give the dotted ``key``, read before any schema applies.
+
+    ``default`` where no layer sets it. For schemas whose shape depends on a value, e.g. an algorithm section typed
+    by its ``class_name``.
+    """
+    raw = OmegaConf.create()
+    if files is not None:
+        for path in [files] if isinstance(files, (str, os.PathLike)) else files:
+            raw = OmegaConf.merge(raw, _read_yaml_with_defaults(path))
+    if overrides:
+        raw = OmegaConf.merge(raw, _overrides_config(overrides))
+    return OmegaConf.select(raw, key, default=default)
 
 
 def _read_yaml_with_defaults(path: str | os.PathLike, _seen: tuple[str, ...] = ()) -> DictConfig:

@@ -22,6 +22,7 @@ public is re-exported here.
 """
 
 from shield_nav.training.config import (
+    ALGORITHM_CONFIGS,
     ANCHORED_ALGORITHM,
     CHECKPOINT_FORMAT_VERSION,
     MULTI_HYPOTHESIS_ALGORITHM,
@@ -29,13 +30,18 @@ from shield_nav.training.config import (
     SCHEDULED_ALGORITHM,
     ActorConfig,
     AlgorithmConfig,
+    AnchoredPPOConfig,
     CriticConfig,
+    DistillationConfig,
     DistributionConfig,
     ExpertConfig,
+    MultiHypothesisDistillationConfig,
+    PPOConfig,
     RunnerConfig,
+    ScheduledDistillationConfig,
     TrainConfig,
-    check_algorithm_keys,
     load_train_config,
+    migrate_flat_algorithm,
     rsl_rl_train_cfg,
 )
 from shield_nav.training.runner import (
@@ -57,9 +63,15 @@ from shield_nav.training.runner import (
 )
 
 __all__ = [
+    "ALGORITHM_CONFIGS",
     "ANCHORED_ALGORITHM",
     "ActorConfig",
     "AlgorithmConfig",
+    "AnchoredPPOConfig",
+    "DistillationConfig",
+    "MultiHypothesisDistillationConfig",
+    "PPOConfig",
+    "ScheduledDistillationConfig",
     "CHECKPOINT_FORMAT_VERSION",
     "CriticConfig",
     "DistributionConfig",
@@ -72,7 +84,6 @@ __all__ = [
     "ShieldNavRunner",
     "TrainConfig",
     "build_parser",
-    "check_algorithm_keys",
     "check_checkpoint",
     "check_device",
     "check_files",
@@ -80,6 +91,7 @@ __all__ = [
     "configure_threads",
     "episode_means",
     "load_train_config",
+    "migrate_flat_algorithm",
     "main",
     "make_env",
     "make_runner",

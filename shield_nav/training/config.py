@@ -6,15 +6,16 @@ import copy
 import dataclasses
 import inspect
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from envs.config import ConfigError, load_config, require, to_dict
+from envs.config import ConfigError, load_config, require, select_raw, to_dict
 from envs.navigation import NavConfig
 from shield_nav.anchored import ANCHOR_TARGETS
 from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
 
-CHECKPOINT_FORMAT_VERSION = 1
+CHECKPOINT_FORMAT_VERSION = 2
 """Version of the ``infos`` layout inside ``model_<it>.pt``; bump it and add a migration when it changes."""
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -88,17 +89,30 @@ def _default_teacher() -> ActorConfig:
 
 @dataclass
 class AlgorithmConfig:
-    """PPO (or Distillation) hyper-parameters (rsl-rl ``algorithm`` dict).
+    """Keys every learning algorithm takes: the common part of ``runner.algorithm``.
 
-    Keys the chosen algorithm class does not take are dropped when the runner is built (PPO ignores
-    ``gradient_length`` and ``loss_type``; Distillation ignores the PPO-only keys).
+    ``runner.algorithm`` is typed by its ``class_name`` (as Isaac Lab's ``RslRlPpoAlgorithmCfg`` and
+    ``RslRlDistillationAlgorithmCfg``): :class:`PPOConfig`, :class:`AnchoredPPOConfig`, :class:`DistillationConfig`,
+    :class:`ScheduledDistillationConfig` or :class:`MultiHypothesisDistillationConfig` (``ALGORITHM_CONFIGS``). A key
+    the chosen class does not define is an unknown key: the config fails to load, naming it.
     """
 
     class_name: str = "PPO"
-    """Algorithm class: ``PPO``; with ``runner.class_name: DistillationRunner`` rsl-rl's ``Distillation`` or, for a
+    """Algorithm class: ``PPO`` or ``shield_nav.anchored:AnchoredPPO``; with ``runner.class_name:
+    DistillationRunner`` rsl-rl's ``Distillation``, ``shield_nav.distillation:ScheduledDistillation`` or, for a
     student with ``actor.num_hypotheses > 1``, ``shield_nav.distillation:MultiHypothesisDistillation``."""
     num_learning_epochs: int = 4
     """Passes over each rollout."""
+    learning_rate: float = 3.0e-4
+    """Initial Adam learning rate (PPO: adapted by the KL schedule; distillation: see ``lr_schedule``)."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm."""
+
+
+@dataclass
+class PPOConfig(AlgorithmConfig):
+    """rsl-rl's ``PPO``."""
+
     num_mini_batches: int = 4
     """Mini-batches per pass (recurrent: envs are split into this many groups; num_envs must be divisible)."""
     clip_param: float = 0.2
@@ -111,10 +125,6 @@ class AlgorithmConfig:
     """Weight of the value loss."""
     entropy_coef: float = 0.005
     """Weight of the entropy bonus."""
-    learning_rate: float = 3.0e-4
-    """Initial Adam learning rate (adapted by the KL schedule)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm."""
     use_clipped_value_loss: bool = True
     """Clip the value update like the policy ratio."""
     schedule: str = "adaptive"
@@ -123,38 +133,72 @@ class AlgorithmConfig:
     """Target KL for the adaptive schedule."""
     normalize_advantage_per_mini_batch: bool = False
     """Normalise advantages per mini-batch instead of over the whole rollout."""
-    gradient_length: int = 24
-    """Distillation only: steps of behaviour-cloning loss accumulated per gradient step (the student's BPTT window)."""
-    loss_type: str = "mse"
-    """Distillation only: ``mse`` or ``huber`` between the student's mean action and the teacher's."""
-    wta_epsilon: float = 0.05
-    """Multi-hypothesis distillation (and kickstarting, ``anchor_target: expert``) only: share of the loss spread over
-    the losing candidates, in [0, 1)."""
-    selection_coef: float = 0.1
-    """Multi-hypothesis distillation (and kickstarting) only: weight of the cross-entropy that trains the candidate
-    scores."""
-    lr_schedule: str = "constant"
-    """Distillation only: ``constant`` (rsl-rl's) or ``cosine`` from ``learning_rate`` to ``lr_final`` over
-    ``lr_schedule_iterations`` updates; ``cosine`` needs ``shield_nav.distillation:ScheduledDistillation`` (single
-    head) or ``MultiHypothesisDistillation``."""
-    lr_final: float = 1.0e-5
-    """Distillation with ``lr_schedule: cosine`` only: the rate the cosine ends at."""
-    lr_schedule_iterations: int = 0
-    """Distillation with ``lr_schedule: cosine`` only: iterations the cosine takes; 0 = the run's
-    ``max_iterations``."""
-    replay_rollouts: int = 0
-    """Distillation only: past rollouts kept for replay (dataset aggregation); 0 = rsl-rl's fit-once DAgger. Needs
-    ``ScheduledDistillation`` or ``MultiHypothesisDistillation``; each costs ``num_envs x num_steps_per_env``
-    observations of memory (128 x 24 depth images = 74 MB)."""
-    replay_passes: int = 0
-    """Distillation with replay only: kept rollouts fitted per update (each costs about one learning epoch)."""
+
+
+@dataclass
+class AnchoredPPOConfig(PPOConfig):
+    """``shield_nav.anchored:AnchoredPPO``: PPO plus a term holding the actor near a reference."""
+
+    class_name: str = "shield_nav.anchored:AnchoredPPO"
+    """See :class:`AlgorithmConfig`."""
     anchor_coef: float = 0.0
-    """``shield_nav.anchored:AnchoredPPO`` only: weight of the anchor term, the distance of the actor's mean action
-    from the reference's on the same states (PPO fine-tuning)."""
+    """Weight of the anchor term, the distance of the actor's mean action from the reference's on the same states
+    (PPO fine-tuning)."""
     anchor_target: str = "actor_init"
-    """``shield_nav.anchored:AnchoredPPO`` only: the reference. ``actor_init``: the frozen ``runner.actor_init``
-    actor, ``mean((mu - mu_ref)^2)``. ``expert``: the scripted expert of ``runner.expert`` (kickstarting), DAgger's
-    loss (``wta_loss`` with ``wta_epsilon`` and ``selection_coef`` for a multi-hypothesis actor)."""
+    """The reference. ``actor_init``: the frozen ``runner.actor_init`` actor, ``mean((mu - mu_ref)^2)``. ``expert``:
+    the scripted expert of ``runner.expert`` (kickstarting), DAgger's loss (``wta_loss`` with ``wta_epsilon`` and
+    ``selection_coef`` for a multi-hypothesis actor)."""
+    wta_epsilon: float = 0.05
+    """Kickstarting a multi-hypothesis actor: share of the loss spread over the losing candidates, in [0, 1)."""
+    selection_coef: float = 0.1
+    """Kickstarting a multi-hypothesis actor: weight of the cross-entropy that trains the candidate scores."""
+
+
+@dataclass
+class DistillationConfig(AlgorithmConfig):
+    """rsl-rl's ``Distillation`` (DAgger: the student imitates the teacher on the student's own states)."""
+
+    class_name: str = "Distillation"
+    """See :class:`AlgorithmConfig`."""
+    gradient_length: int = 24
+    """Steps of behaviour-cloning loss accumulated per gradient step (the student's BPTT window)."""
+    loss_type: str = "mse"
+    """``mse`` or ``huber`` between the student's mean action and the teacher's."""
+
+
+@dataclass
+class ScheduledDistillationConfig(DistillationConfig):
+    """``shield_nav.distillation:ScheduledDistillation``: distillation with a rate schedule and rollout replay."""
+
+    class_name: str = "shield_nav.distillation:ScheduledDistillation"
+    """See :class:`AlgorithmConfig`."""
+    lr_schedule: str = "constant"
+    """``constant`` (rsl-rl's) or ``cosine`` from ``learning_rate`` to ``lr_final`` over ``lr_schedule_iterations``
+    updates."""
+    lr_final: float = 1.0e-5
+    """With ``lr_schedule: cosine``: the rate the cosine ends at."""
+    lr_schedule_iterations: int = 0
+    """With ``lr_schedule: cosine``: iterations the cosine takes; 0 = the run's ``max_iterations``."""
+    replay_rollouts: int = 0
+    """Past rollouts kept for replay (dataset aggregation); 0 = rsl-rl's fit-once DAgger. Each costs ``num_envs x
+    num_steps_per_env`` observations of memory (128 x 24 depth images = 74 MB)."""
+    replay_passes: int = 0
+    """With replay: kept rollouts fitted per update (each costs about one learning epoch)."""
+
+
+@dataclass
+class MultiHypothesisDistillationConfig(ScheduledDistillationConfig):
+    """``shield_nav.distillation:MultiHypothesisDistillation``: the winner-takes-all loss.
+
+    For students with ``actor.num_hypotheses > 1``.
+    """
+
+    class_name: str = "shield_nav.distillation:MultiHypothesisDistillation"
+    """See :class:`AlgorithmConfig`."""
+    wta_epsilon: float = 0.05
+    """Share of the loss spread over the losing candidates, in [0, 1)."""
+    selection_coef: float = 0.1
+    """Weight of the cross-entropy that trains the candidate scores."""
 
 
 MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
@@ -163,6 +207,14 @@ SCHEDULED_ALGORITHM = "shield_nav.distillation:ScheduledDistillation"
 """``runner.algorithm.class_name`` of a single-head student with a learning-rate schedule."""
 ANCHORED_ALGORITHM = "shield_nav.anchored:AnchoredPPO"
 """``runner.algorithm.class_name`` of PPO fine-tuning anchored to its ``runner.actor_init`` actor."""
+ALGORITHM_CONFIGS: dict[str, type[AlgorithmConfig]] = {
+    "PPO": PPOConfig,
+    ANCHORED_ALGORITHM: AnchoredPPOConfig,
+    "Distillation": DistillationConfig,
+    SCHEDULED_ALGORITHM: ScheduledDistillationConfig,
+    MULTI_HYPOTHESIS_ALGORITHM: MultiHypothesisDistillationConfig,
+}
+"""The typed section of ``runner.algorithm`` for each ``class_name``."""
 
 
 def _default_expert_params() -> BaselineConfig:
@@ -198,8 +250,8 @@ class RunnerConfig:
         default_factory=lambda: {"actor": ["depth", "state"], "critic": ["critic"]}
     )
     """Observation sets -> env observation groups."""
-    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
-    """PPO."""
+    algorithm: AlgorithmConfig = field(default_factory=PPOConfig)
+    """The learning algorithm, typed by its ``class_name`` (``ALGORITHM_CONFIGS``)."""
     actor: ActorConfig = field(default_factory=ActorConfig)
     """Actor model."""
     critic: CriticConfig = field(default_factory=CriticConfig)
@@ -269,79 +321,81 @@ class TrainConfig:
         r = self.runner
         require(r.num_steps_per_env >= 1, f"{prefix}runner.num_steps_per_env", "must be >= 1")
         require(r.save_interval >= 1, f"{prefix}runner.save_interval", "must be >= 1")
-        mb = r.algorithm.num_mini_batches
-        require(
-            mb >= 1 and self.env.num_envs % mb == 0,
-            f"{prefix}runner.algorithm.num_mini_batches",
-            f"must divide env.num_envs ({self.env.num_envs}) for the recurrent generator, got {mb}",
-        )
-        require(r.algorithm.schedule in ("adaptive", "fixed"), f"{prefix}runner.algorithm.schedule", "adaptive|fixed")
         runners = ("OnPolicyRunner", "DistillationRunner")
         require(
             r.class_name in runners, f"{prefix}runner.class_name", f"must be one of {runners}, got {r.class_name!r}"
         )
+        a = r.algorithm
         distill = r.class_name == "DistillationRunner"
         multi = r.actor.num_hypotheses > 1
         algos = ("PPO", ANCHORED_ALGORITHM)
         if distill:
             algos = (MULTI_HYPOTHESIS_ALGORITHM,) if multi else ("Distillation", SCHEDULED_ALGORITHM)
-        got = r.algorithm.class_name
+        got = a.class_name
         require(r.actor.num_hypotheses >= 1, f"{prefix}runner.actor.num_hypotheses", "must be >= 1")
         require(distill or not multi or r.actor_init, f"{prefix}runner.actor.num_hypotheses",
                 "> 1 only with DistillationRunner or PPO fine-tuning from runner.actor_init")  # fmt: skip
-        anchored = got == ANCHORED_ALGORITHM
-        require(r.algorithm.anchor_coef >= 0.0 and (anchored or r.algorithm.anchor_coef == 0.0),
-                f"{prefix}runner.algorithm.anchor_coef",
-                f"must be >= 0, and > 0 only with runner.algorithm.class_name {ANCHORED_ALGORITHM!r}; got "
-                f"{r.algorithm.anchor_coef} with {got!r}")  # fmt: skip
-        require(not anchored or r.actor_init, f"{prefix}runner.actor_init",
-                f"is required by {ANCHORED_ALGORITHM!r}: it is the actor the fine-tuning starts from")  # fmt: skip
-        require(r.algorithm.anchor_target in ANCHOR_TARGETS, f"{prefix}runner.algorithm.anchor_target",
-                f"must be one of {ANCHOR_TARGETS}, got {r.algorithm.anchor_target!r}")  # fmt: skip
-        kickstart = anchored and r.algorithm.anchor_target == "expert"
-        require(not kickstart or r.expert.kind, f"{prefix}runner.expert.kind",
-                "must be set with runner.algorithm.anchor_target 'expert' (the expert the actor is held near)")
         require(got in algos, f"{prefix}runner.algorithm.class_name",
                 f"must be one of {algos} with runner.class_name {r.class_name!r} and actor.num_hypotheses "
                 f"{r.actor.num_hypotheses}, got {got!r}")  # fmt: skip
-        require(r.algorithm.lr_schedule in ("constant", "cosine"), f"{prefix}runner.algorithm.lr_schedule",
-                f"must be 'constant' or 'cosine', got {r.algorithm.lr_schedule!r}")  # fmt: skip
-        require(r.algorithm.lr_schedule == "constant" or got in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM),
-                f"{prefix}runner.algorithm.lr_schedule",
-                f"'cosine' needs runner.algorithm.class_name {SCHEDULED_ALGORITHM!r} or {MULTI_HYPOTHESIS_ALGORITHM!r}"
-                f", got {got!r}")  # fmt: skip
-        require(r.algorithm.lr_schedule == "constant" or 0.0 < r.algorithm.lr_final <= r.algorithm.learning_rate,
-                f"{prefix}runner.algorithm.lr_final",
-                f"must be in (0, runner.algorithm.learning_rate = {r.algorithm.learning_rate}], "
-                f"got {r.algorithm.lr_final}")  # fmt: skip
-        require(r.algorithm.lr_schedule_iterations >= 0, f"{prefix}runner.algorithm.lr_schedule_iterations",
-                "must be >= 0 (0 = max_iterations)")  # fmt: skip
-        ours = (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM)
-        rr, rp = r.algorithm.replay_rollouts, r.algorithm.replay_passes
-        require(rr == 0 or got in ours, f"{prefix}runner.algorithm.replay_rollouts",
-                f"> 0 needs runner.algorithm.class_name one of {ours}, got {got!r}")  # fmt: skip
-        require(rr >= 0 and 0 <= rp <= rr and (rr > 0) == (rp > 0), f"{prefix}runner.algorithm.replay_passes",
-                f"needs 0 <= replay_passes <= replay_rollouts, both 0 or both > 0; got {rp} and {rr}")  # fmt: skip
-        require(0.0 <= r.algorithm.wta_epsilon < 1.0, f"{prefix}runner.algorithm.wta_epsilon", "must be in [0, 1)")
-        require(r.algorithm.selection_coef >= 0.0, f"{prefix}runner.algorithm.selection_coef", "must be >= 0")
+        require(a.num_learning_epochs >= 1, f"{prefix}runner.algorithm.num_learning_epochs", "must be >= 1")
+        require(a.learning_rate >= 0.0, f"{prefix}runner.algorithm.learning_rate", "must be >= 0")
+        kickstart = False
+        if isinstance(a, PPOConfig):
+            mb = a.num_mini_batches
+            require(mb >= 1 and self.env.num_envs % mb == 0, f"{prefix}runner.algorithm.num_mini_batches",
+                    f"must divide env.num_envs ({self.env.num_envs}) for the recurrent generator, "
+                    f"got {mb}")  # fmt: skip
+            require(a.schedule in ("adaptive", "fixed"), f"{prefix}runner.algorithm.schedule", "adaptive|fixed")
+        if isinstance(a, AnchoredPPOConfig):
+            require(a.anchor_coef >= 0.0, f"{prefix}runner.algorithm.anchor_coef", f"must be >= 0, got {a.anchor_coef}")
+            require(bool(r.actor_init), f"{prefix}runner.actor_init",
+                    f"is required by {ANCHORED_ALGORITHM!r}: it is the actor the fine-tuning starts from")  # fmt: skip
+            require(a.anchor_target in ANCHOR_TARGETS, f"{prefix}runner.algorithm.anchor_target",
+                    f"must be one of {ANCHOR_TARGETS}, got {a.anchor_target!r}")  # fmt: skip
+            kickstart = a.anchor_target == "expert"
+            require(
+                not kickstart or r.expert.kind,
+                f"{prefix}runner.expert.kind",
+                "must be set with runner.algorithm.anchor_target 'expert' (the expert the actor is held near)",
+            )
+        if isinstance(a, (AnchoredPPOConfig, MultiHypothesisDistillationConfig)):
+            require(0.0 <= a.wta_epsilon < 1.0, f"{prefix}runner.algorithm.wta_epsilon", "must be in [0, 1)")
+            require(a.selection_coef >= 0.0, f"{prefix}runner.algorithm.selection_coef", "must be >= 0")
+        if isinstance(a, DistillationConfig):
+            require(a.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
+            require(a.gradient_length >= 1, f"{prefix}runner.algorithm.gradient_length", "must be >= 1")
+        if isinstance(a, ScheduledDistillationConfig):
+            require(a.lr_schedule in ("constant", "cosine"), f"{prefix}runner.algorithm.lr_schedule",
+                    f"must be 'constant' or 'cosine', got {a.lr_schedule!r}")  # fmt: skip
+            require(a.lr_schedule == "constant" or 0.0 < a.lr_final <= a.learning_rate,
+                    f"{prefix}runner.algorithm.lr_final",
+                    f"must be in (0, runner.algorithm.learning_rate = {a.learning_rate}], "
+                    f"got {a.lr_final}")  # fmt: skip
+            require(a.lr_schedule_iterations >= 0, f"{prefix}runner.algorithm.lr_schedule_iterations",
+                    "must be >= 0 (0 = max_iterations)")  # fmt: skip
+            rr, rp = a.replay_rollouts, a.replay_passes
+            require(rr >= 0 and 0 <= rp <= rr and (rr > 0) == (rp > 0), f"{prefix}runner.algorithm.replay_passes",
+                    f"needs 0 <= replay_passes <= replay_rollouts, both 0 or both > 0; got {rp} and {rr}")  # fmt: skip
         require(distill or not r.student_init, f"{prefix}runner.student_init", "only with DistillationRunner")
         require(not distill or not r.actor_init, f"{prefix}runner.actor_init", "only with OnPolicyRunner (PPO)")
         require(r.critic_warmup_iterations >= 0, f"{prefix}runner.critic_warmup_iterations", "must be >= 0")
-        require(r.critic_warmup_iterations == 0 or (not distill and r.algorithm.schedule == "fixed"),
+        require(r.critic_warmup_iterations == 0 or (isinstance(a, PPOConfig) and a.schedule == "fixed"),
                 f"{prefix}runner.critic_warmup_iterations",
                 "needs runner.class_name OnPolicyRunner and runner.algorithm.schedule 'fixed'")  # fmt: skip
         for key in ("student", "teacher") if distill else ("actor", "critic"):
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
-        require(r.algorithm.loss_type in ("mse", "huber"), f"{prefix}runner.algorithm.loss_type", "mse|huber")
-        require(r.algorithm.gradient_length >= 1, f"{prefix}runner.algorithm.gradient_length", "must be >= 1")
         uses_expert_obs = any("expert" in groups for groups in r.obs_groups.values())
         require(not uses_expert_obs or r.expert.kind, f"{prefix}runner.expert.kind",
                 "must be set when an obs group reads the 'expert' observation")  # fmt: skip
         if r.expert.kind:
             require(r.expert.kind in EXPERTS, f"{prefix}runner.expert.kind",
                     f"unknown expert {r.expert.kind!r}; known: {sorted(EXPERTS)}")  # fmt: skip
-            require(distill or kickstart, f"{prefix}runner.expert.kind",
-                    "only with runner.class_name DistillationRunner, or AnchoredPPO with anchor_target 'expert'")
+            require(
+                distill or kickstart,
+                f"{prefix}runner.expert.kind",
+                "only with runner.class_name DistillationRunner, or AnchoredPPO with anchor_target 'expert'",
+            )
             require(not distill or r.obs_groups.get("teacher") == ["expert"], f"{prefix}runner.obs_groups.teacher",
                     f"must be [expert] with runner.expert.kind {r.expert.kind!r}")  # fmt: skip
             require(not distill or r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
@@ -358,10 +412,56 @@ def load_train_config(
 ) -> TrainConfig:
     """Load a :class:`TrainConfig` from YAML file(s) (with ``defaults:`` includes) and dotted overrides.
 
+    ``runner.algorithm`` takes the typed section of its ``class_name`` (``ALGORITHM_CONFIGS``), read from the same
+    layers first; a key that section does not define is an unknown key.
+
     Raises:
         ConfigError: Naming the dotted key of the first unknown key or bad value, before any work.
     """
+    if files is not None and not isinstance(files, (str, os.PathLike)):
+        files = list(files)
+    base = TrainConfig() if base is None else base
+    name = select_raw("runner.algorithm.class_name", files, overrides, default=base.runner.algorithm.class_name)
+    if name not in ALGORITHM_CONFIGS:
+        raise ConfigError(f"config key 'runner.algorithm.class_name': unknown algorithm {name!r}; known: "
+                          f"{sorted(ALGORITHM_CONFIGS)}")  # fmt: skip
+    schema = ALGORITHM_CONFIGS[name]
+    if type(base.runner.algorithm) is not schema:
+        # Start the section from the new class's defaults, keeping the values of the keys both classes define.
+        old = base.runner.algorithm
+        shared = {f.name: getattr(old, f.name) for f in dataclasses.fields(schema)
+                  if f.name != "class_name" and hasattr(old, f.name)}  # fmt: skip
+        base = copy.deepcopy(base)
+        base.runner.algorithm = schema(**shared)
     return load_config(TrainConfig, files=files, overrides=overrides, base=base)
+
+
+def migrate_flat_algorithm(config: dict, source: str = "stored config") -> dict:
+    """A stored config of checkpoint format 1 in the typed layout of format 2.
+
+    Format 1 stored one flat ``runner.algorithm`` with every algorithm's keys. The keys its class's section does not
+    define are dropped, which is what the runner did with them when it trained. A dropped key whose value was not
+    the flat default is named in a warning (it had no effect on that run, but whoever set it may have thought it
+    did).
+    """
+    out = copy.deepcopy(config)
+    algo = (out.get("runner") or {}).get("algorithm")
+    if not isinstance(algo, dict):
+        return out
+    schema = ALGORITHM_CONFIGS.get(algo.get("class_name", "PPO"))
+    if schema is None:
+        return out  # load_train_config names the unknown class
+    known = {f.name for f in dataclasses.fields(schema)}
+    flat = {f.name: f.default for cls in ALGORITHM_CONFIGS.values() for f in dataclasses.fields(cls)}
+    # Format 1's train.py wrote max_iterations into lr_schedule_iterations for every algorithm, not only by choice.
+    flat["lr_schedule_iterations"] = (flat["lr_schedule_iterations"], out.get("max_iterations"))
+    for key in [k for k in algo if k not in known]:
+        value = algo.pop(key)
+        expected = flat.get(key)
+        if key in flat and value not in (expected if isinstance(expected, tuple) else (expected,)):
+            warnings.warn(f"{source}: runner.algorithm.{key} = {value!r} was not taken by {algo.get('class_name')!r} "
+                          "when this run trained; dropped", stacklevel=2)  # fmt: skip
+    return out
 
 
 def _constructor_names(class_name: str) -> set[str] | None:
@@ -383,26 +483,6 @@ def _constructor_names(class_name: str) -> set[str] | None:
     return None
 
 
-def check_algorithm_keys(cfg: TrainConfig, keys: Sequence[str] | None = None) -> None:
-    """An algorithm key set away from its default that the chosen algorithm does not take is an error.
-
-    ``runner.algorithm`` holds the parameters of every algorithm (PPO, distillation, multi-hypothesis, anchored);
-    the runner passes each class only what its constructor takes, so without this check e.g.
-    ``--set runner.algorithm.wta_epsilon=0.9`` on plain PPO would train and drop the key without a word.
-    """
-    algo = cfg.runner.algorithm
-    names = _constructor_names(algo.class_name)
-    if names is None:
-        return
-    defaults = AlgorithmConfig()
-    for f in dataclasses.fields(AlgorithmConfig):
-        if f.name == "class_name" or f.name in names or (keys is not None and f.name not in keys):
-            continue
-        if keys is not None or getattr(algo, f.name) != getattr(defaults, f.name):
-            raise ConfigError(f"config key 'runner.algorithm.{f.name}': {algo.class_name} does not take it (set to "
-                              f"{getattr(algo, f.name)!r}); it applies to another algorithm class")  # fmt: skip
-
-
 def _accepted(class_name: str, kwargs: dict) -> dict:
     """``kwargs`` restricted to what ``class_name``'s constructor takes (all of them if it takes ``**kwargs``)."""
     names = _constructor_names(class_name)
@@ -418,19 +498,26 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
     and ``teacher``. Model and algorithm keys their classes do not take are dropped.
     """
     d = to_dict(cfg.runner)
-    for key in ("init_at_random_ep_len", "class_name", "teacher_checkpoint", "student_init", "expert",
-                "actor_init", "critic_warmup_iterations"):
+    for key in (
+        "init_at_random_ep_len",
+        "class_name",
+        "teacher_checkpoint",
+        "student_init",
+        "expert",
+        "actor_init",
+        "critic_warmup_iterations",
+    ):
         d.pop(key)
     teacher = d.pop("teacher")
     if cfg.runner.class_name == "DistillationRunner":
         d["student"] = d.pop("actor")
         d["teacher"] = teacher
         d.pop("critic")
-    if d["algorithm"]["lr_schedule_iterations"] == 0:
+    if d["algorithm"].get("lr_schedule_iterations") == 0:
         d["algorithm"]["lr_schedule_iterations"] = cfg.max_iterations
     if d["algorithm"]["class_name"] in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM):
         d["algorithm"]["seed"] = cfg.seed  # the draw of replayed rollouts
-    for key in ("actor", "critic", "student", "teacher", "algorithm"):
+    for key in ("actor", "critic", "student", "teacher"):  # the algorithm section is typed by its class already
         if key in d:
             d[key] = _accepted(d[key]["class_name"], d[key])
     d["experiment_name"] = cfg.experiment_name

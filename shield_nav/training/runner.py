@@ -25,8 +25,8 @@ from shield_nav.training.config import (
     CHECKPOINT_FORMAT_VERSION,
     REPO_ROOT,
     TrainConfig,
-    check_algorithm_keys,
     load_train_config,
+    migrate_flat_algorithm,
     rsl_rl_train_cfg,
 )
 
@@ -78,7 +78,10 @@ def read_checkpoint_infos(path: str | os.PathLike) -> dict:
         raise ValueError(f"{path}: no format_version in infos; not written by shield_nav.training")
     if version > CHECKPOINT_FORMAT_VERSION:
         raise ValueError(f"{path}: format_version {version} is newer than this code ({CHECKPOINT_FORMAT_VERSION})")
-    # Version 1 is current; future migrations go here (if version == 1: ...).
+    if version == 1 and isinstance(infos.get("config"), dict):
+        # Version 2 types runner.algorithm by its class (training.config.ALGORITHM_CONFIGS); version 1 stored the
+        # flat section with every algorithm's keys.
+        infos = {**infos, "config": migrate_flat_algorithm(infos["config"], str(path)), "format_version": 2}
     return infos
 
 
@@ -202,9 +205,9 @@ def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> No
     distill = cfg.runner.class_name == "DistillationRunner"
     if distill and resume is None and not cfg.runner.expert.kind and not os.path.isfile(cfg.runner.teacher_checkpoint):
         raise ConfigError(
-                f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
-                "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
-            )
+            f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
+            "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
+        )
     if distill and resume is None and cfg.runner.student_init and not os.path.isfile(cfg.runner.student_init):
         raise ConfigError(f"config key 'runner.student_init': no such file {cfg.runner.student_init!r}")
     if resume is None and cfg.runner.actor_init and not os.path.isfile(cfg.runner.actor_init):
@@ -452,17 +455,12 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         if args.config is not None:
             print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
         stored = read_checkpoint_infos(args.resume)["config"]
-        cfg = load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
-        # The stored config is what ran; only the keys given now are checked against the algorithm.
-        given = [o.split("=", 1)[0].removeprefix("runner.algorithm.") for o in overrides
-                 if o.startswith("runner.algorithm.")]  # fmt: skip
-        check_algorithm_keys(cfg, given)
-        return cfg
+        # The stored config is what ran; keys given now must exist in its algorithm's section.
+        return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
     if args.config is None:
         raise ConfigError("--config is required (or --resume)")
     cfg = load_train_config(files=args.config, overrides=overrides)
-    check_algorithm_keys(cfg)
-    if cfg.runner.algorithm.lr_schedule_iterations == 0:
+    if getattr(cfg.runner.algorithm, "lr_schedule_iterations", None) == 0:
         # Frozen into the stored config, so a resume that extends --max-iterations keeps the schedule it started.
         cfg.runner.algorithm.lr_schedule_iterations = cfg.max_iterations
     return cfg

@@ -167,8 +167,7 @@ def test_distillation_runner_labels_with_the_oracle():
     """rsl-rl's Distillation stores the oracle's action of each visited state as the privileged action."""
     cfg = load_train_config(
         os.path.join(REPO, "configs", "experiments", "distill_oracle.yaml"),
-        overrides=["env.num_envs=4", "env.scenes.indices=[0,1]", "runner.num_steps_per_env=4",
-                   "runner.algorithm.num_mini_batches=2"],  # fmt: skip
+        overrides=["env.num_envs=4", "env.scenes.indices=[0,1]", "runner.num_steps_per_env=4"],
     )
     env = make_env(cfg)
     runner = make_runner(env, cfg, log_dir=None, device="cpu")
@@ -203,8 +202,7 @@ def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
     """train.py runs oracle DAgger end to end (no teacher checkpoint, a deployable export), then PPO fine-tunes that
     student: the actor starts as the student, stays frozen through the critic warm-up, then trains."""
     root = str(tmp_path / "logs")
-    small = ["--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]",
-             "runner.algorithm.num_mini_batches=2"]  # fmt: skip
+    small = ["--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]"]
     res = run_train("--config", "configs/experiments/distill_oracle.yaml", "--max-iterations", "1", *small)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "teacher: the scripted 'oracle' expert" in res.stdout
@@ -220,7 +218,7 @@ def test_train_cli_distills_from_the_oracle_then_fine_tunes_with_ppo(tmp_path):
 
     res = run_train("--config", "configs/experiments/finetune_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
                     f"runner.actor_init={student_path}", "runner.critic_warmup_iterations=1",
-                    "runner.save_interval=1")  # fmt: skip
+                    "runner.save_interval=1", "runner.algorithm.num_mini_batches=2")  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     assert "actor initialised from" in res.stdout and "critic warm-up done" in res.stdout
     (ft,) = [d for d in os.listdir(os.path.join(root, "shield_nav")) if d.endswith("_finetuned")]

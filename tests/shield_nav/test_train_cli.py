@@ -1,9 +1,11 @@
 """train.py end to end (subprocess, the real task with 4 envs on 2 scenes): run folder, resume, bad keys, SIGTERM."""
 
+import dataclasses
 import os
 import signal
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import onnxruntime as ort
@@ -128,8 +130,9 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     """A privileged MLP teacher (PPO, nothing rendered), then the CNN+GRU student distilled from it."""
     root = str(tmp_path / "logs")
     small = ["--num-envs", "4", "--max-iterations", "1", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
-             "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2"]  # fmt: skip
-    res = run_train(["--config", "configs/experiments/teacher_dijkstra_cbf.yaml", *small, "runner.save_interval=1"])
+             "env.scenes.indices=[0,1]"]  # fmt: skip
+    res = run_train(["--config", "configs/experiments/teacher_dijkstra_cbf.yaml", *small, "runner.save_interval=1",
+                     "runner.algorithm.num_mini_batches=2"])  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     assert "not exported: the policy is a MLPModel" in res.stdout  # a privileged teacher is not deployable
     (teacher_dir,) = [os.path.join(root, "shield_nav", d) for d in os.listdir(os.path.join(root, "shield_nav"))]
@@ -306,29 +309,79 @@ def test_progress_line_by_hand():
     # 10 iterations done of 40 in 100 s with 30,720 steps: 307 steps/s, ETA 30 x 10 s = 0:05:00.
     logger = SimpleNamespace(tot_timesteps=30720, tot_time=100.0)
     line = progress_line(logger, 9, 40, means)
-    assert line == ("[train] it 10/40 |     307 env-steps/s | success  66.7 % of   3 ep | level  4.00 | "
-                    "0:01:40 elapsed, ETA 0:05:00")
+    assert line == (
+        "[train] it 10/40 |     307 env-steps/s | success  66.7 % of   3 ep | level  4.00 | "
+        "0:01:40 elapsed, ETA 0:05:00"
+    )
     empty = progress_line(logger, 9, 40, episode_means([], ("episode/success",)))
     assert "no episode ended" in empty and "level   -  " in empty
 
 
-def test_inapplicable_algorithm_key_fails_by_name():
-    """A key of another algorithm set on PPO is an error naming it, not a silently dropped value; the same key on
-    the algorithm that takes it passes, and leaving it at its default on PPO is not an error."""
+def test_inapplicable_algorithm_key_fails_by_name(tmp_path):
+    """runner.algorithm is typed by its class_name: a key of another algorithm is an unknown key naming it, from
+    the command line and from a file; the same key on the algorithm that defines it loads."""
     from envs.config import ConfigError
-    from shield_nav.training import check_algorithm_keys, load_train_config
+    from shield_nav.training import (
+        MultiHypothesisDistillationConfig,
+        PPOConfig,
+        load_train_config,
+    )
 
-    ppo = load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"),
-                            overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
-    with pytest.raises(ConfigError, match=r"runner\.algorithm\.wta_epsilon': PPO does not take it"):
-        check_algorithm_keys(ppo)
+    with pytest.raises(ConfigError, match=r"runner\.algorithm\.wta_epsilon.*not in 'PPOConfig'"):
+        load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"),
+                          overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
     mh = load_train_config(os.path.join(REPO, "configs/experiments/distill_oracle_shapes_3ms_mh.yaml"),
                            overrides=["runner.algorithm.wta_epsilon=0.9"])  # fmt: skip
-    check_algorithm_keys(mh)
-    check_algorithm_keys(load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml")))
-    # On --resume only the keys given now are checked (the stored config is what ran).
-    with pytest.raises(ConfigError, match="runner.algorithm.replay_rollouts"):
-        check_algorithm_keys(load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml")),
-                             ["replay_rollouts"])  # fmt: skip
+    assert type(mh.runner.algorithm) is MultiHypothesisDistillationConfig and mh.runner.algorithm.wta_epsilon == 0.9
+    ppo = load_train_config(os.path.join(REPO, "configs/train/dijkstra_cbf.yaml"))
+    assert type(ppo.runner.algorithm) is PPOConfig and not hasattr(ppo.runner.algorithm, "gradient_length")
+    with pytest.raises(ConfigError, match=r"runner\.algorithm\.class_name': unknown algorithm 'SAC'"):
+        load_train_config(overrides=["runner.algorithm.class_name=SAC"])
+    # A PPO-only key on a distillation run, from a file: named with the file it came from.
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"defaults: [{REPO}/configs/experiments/distill_oracle_shapes_3ms_mh.yaml]\n"
+                   "runner:\n  algorithm:\n    clip_param: 0.1\n")  # fmt: skip
+    with pytest.raises(ConfigError, match=r"runner\.algorithm\.clip_param' \(from .*bad\.yaml\)"):
+        load_train_config(bad)
     res = run_train([*TINY, "--set", "runner.algorithm.replay_rollouts=4"], timeout=120)
     assert res.returncode == 2 and "runner.algorithm.replay_rollouts" in res.stderr
+
+
+def test_algorithm_sections_match_their_classes():
+    """Every key of a typed section is a constructor parameter of its class (the runner passes the section as it
+    is), and each section's class_name default is its own registry name."""
+    import inspect
+
+    from rsl_rl.utils import resolve_callable
+
+    from shield_nav.training import ALGORITHM_CONFIGS
+
+    for name, schema in ALGORITHM_CONFIGS.items():
+        assert schema().class_name == name
+        takes: set[str] = set()
+        for klass in resolve_callable(name).__mro__:
+            if "__init__" in vars(klass):
+                takes |= set(inspect.signature(vars(klass)["__init__"]).parameters)
+        missing = [f.name for f in dataclasses.fields(schema) if f.name not in takes and f.name != "class_name"]
+        assert not missing, (name, missing)
+
+
+def test_format_1_checkpoint_config_is_migrated(tmp_path):
+    """A format-1 checkpoint stored the flat algorithm section: its keys outside the class's section are dropped
+    (they were dropped by the runner when it trained), with a warning for one that was not at the flat default;
+    the migrated config loads and keeps the values of the keys the class defines."""
+    from shield_nav.training import PPOConfig, load_train_config, migrate_flat_algorithm
+
+    flat = {"class_name": "PPO", "learning_rate": 1e-4, "clip_param": 0.3, "gradient_length": 24,
+            "loss_type": "mse", "wta_epsilon": 0.05, "lr_schedule": "constant", "replay_rollouts": 0,
+            "anchor_coef": 0.0}  # fmt: skip
+    stored = {"name": "old", "runner": {"algorithm": flat}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # defaults only: no warning
+        out = migrate_flat_algorithm(stored)
+    assert out["runner"]["algorithm"] == {"class_name": "PPO", "learning_rate": 1e-4, "clip_param": 0.3}
+    assert stored["runner"]["algorithm"]["gradient_length"] == 24  # the input is not mutated
+    cfg = load_train_config(overrides=out)
+    assert type(cfg.runner.algorithm) is PPOConfig and cfg.runner.algorithm.clip_param == 0.3
+    with pytest.warns(UserWarning, match=r"runner\.algorithm\.wta_epsilon = 0\.9 was not taken by 'PPO'"):
+        migrate_flat_algorithm({"runner": {"algorithm": {**flat, "wta_epsilon": 0.9}}})

@@ -134,6 +134,39 @@ def fly(
     return FlightLog(t, pos, d, veh.collided_buf.copy(), d.min(axis=0), active, solve_us, total_us, states)
 
 
+def step_response(accel: float = 5.0, duration: float = 0.6) -> dict:
+    """The vehicle's horizontal acceleration after a step in the commanded acceleration, from hover.
+
+    The command is the attitude and thrust that give ``accel`` m/s^2 along x (``command_from_accel``); the
+    acceleration is measured from velocity differences per command period, with the airframe's linear drag added
+    back so only the thrust direction's response is seen. Returns the times [s] at which it first reaches 10, 50,
+    63.2 and 90 % of its final value, and the equivalent delay (the area between the step and the response over
+    the final value: the lag of a first-order model with the same area) that ``ShieldConfig.lag_s`` models.
+    """
+    vcfg = VehicleConfig()
+    veh = Vehicles(1, vcfg, world_xml="")
+    veh.reset(np.arange(1), np.array([[0.0, 0.0, 5.0]]), vel_w=np.zeros((1, 3)))
+    hover = command_from_accel(np.zeros((1, 3)), np.zeros(1), vcfg.gravity)
+    for _ in range(100):
+        veh.step(hover)
+    cmd = command_from_accel(np.array([[accel, 0.0, 0.0]]), np.zeros(1), vcfg.gravity)
+    dt = vcfg.command_dt
+    steps = int(round(duration / dt))
+    v_prev = veh.vel_w[0, 0]
+    acc = np.zeros(steps)
+    for k in range(steps):
+        veh.step(cmd)
+        v = veh.vel_w[0, 0]
+        acc[k] = (v - v_prev) / dt + vcfg.airframe.linear_drag[0] * v
+        v_prev = v
+    t = dt * np.arange(1, steps + 1)
+    final = float(acc[-int(0.1 / dt) :].mean())
+    out = {f"t{int(round(100 * f))}_s": float(t[np.argmax(acc >= f * final)]) for f in (0.1, 0.5, 0.632, 0.9)}
+    out["equivalent_delay_s"] = float(np.sum(1.0 - acc / final) * dt)
+    out["final_accel"] = final
+    return out
+
+
 def plot_flights(kind: str, speeds: list[float], path: str, duration: float = 4.5) -> dict:
     """Save a figure of distance-to-obstacle over time, shielded vs unshielded; return the minimum distances."""
     import matplotlib
@@ -170,6 +203,12 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(prog="python -m shield_nav.scripted", description=__doc__.splitlines()[0])
     ap.add_argument("--kind", default="pole", choices=["pole", "wall"])
     ap.add_argument("--speeds", default="3,5,7,9")
-    ap.add_argument("--plot", required=True, help="output PNG")
+    ap.add_argument("--plot", help="output PNG of the shielded and unshielded flights")
+    ap.add_argument("--step-response", action="store_true", help="print the vehicle's acceleration step response")
     a = ap.parse_args()
-    print(plot_flights(a.kind, [float(s) for s in a.speeds.split(",")], a.plot))
+    if a.step_response:
+        print({k: round(v, 3) for k, v in step_response().items()})
+    if a.plot:
+        print(plot_flights(a.kind, [float(s) for s in a.speeds.split(",")], a.plot))
+    if not (a.plot or a.step_response):
+        ap.error("give --plot PNG and/or --step-response")

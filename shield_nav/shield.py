@@ -39,6 +39,7 @@ STATUS_FALLBACK = 3
 """Both QPs failed (solver error): a braking command within the actuator limits was returned."""
 STATUS_NAMES = {0: "inactive", 1: "solved", 2: "relaxed", 3: "fallback"}
 _E3 = np.array([[0.0, 0.0, 1.0]])
+_ZERO3 = np.zeros(3)
 
 
 @dataclass
@@ -93,6 +94,16 @@ class ShieldConfig:
     ground (floor at z = 0): with the |r|^2 barrier, floor points 2-8 m ahead of a vehicle cruising at 5 m/s and
     1.5 m altitude violate the HOCBF row although the flight is level, so an unfiltered floor keeps the shield on
     and pushes the vehicle up. Altitude is left to the policy (its height reward) as in the paper's training."""
+    lag_s: float = 0.0
+    """Delay-aware barrier: if > 0, the HOCBF rows constrain the state predicted this long ahead, p + v lag +
+    a lag^2 / 2 and v + a lag, with a the vehicle's current acceleration (from its velocity one ``control_dt`` ago,
+    as an IMU would give it; 0 on a vehicle's first call or after ``reset``). A command turns into acceleration
+    only through the attitude loop and the motors (the vehicle's step response reaches 63 % after 0.16 s,
+    docs/shield.md "Lag"); until then the vehicle keeps moving on the acceleration it has, so the rows of a
+    lag-free shield act on a state that is gone when the correction arrives. 0: the current state (the paper)."""
+    control_dt: float = 0.01
+    """Period of the shield's calls [s] (the vehicle's command period); with ``lag_s`` > 0 the acceleration is
+    (v - v_previous_call) / control_dt."""
     min_altitude: float = 0.0
     """If > 0, one more HOCBF row keeps the vehicle's height z (ground at z = 0, known from the state estimate, not
     the camera) above this value [m]: the planar barrier B = z - min_altitude gives a_z >= -alpha1 v_z - alpha0 B.
@@ -116,6 +127,10 @@ class ShieldConfig:
             f"must be finite and >= 0, got {self.min_altitude}",
         )
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
+        require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
+                f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
+        require(self.control_dt > 0 and math.isfinite(self.control_dt), f"{prefix}control_dt",
+                f"must be > 0, got {self.control_dt}")  # fmt: skip
         require(
             self.solver in qpsolvers.available_solvers,
             f"{prefix}solver",
@@ -215,10 +230,25 @@ def hocbf_rows(
 
 # --------------------------------------------------------------------------------------------- constraint selection
 @nb.njit(cache=True, nogil=True)
+def _margin(rx: float, ry: float, rz: float, v: np.ndarray, a: np.ndarray, alpha0: float, alpha1: float,
+            r_safe: float) -> float:  # fmt: skip
+    """HOCBF row value 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2) (negative: violated)."""
+    return (
+        2.0 * (rx * a[0] + ry * a[1] + rz * a[2])
+        + 2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        + alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
+        + alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
+    )
+
+
+@nb.njit(cache=True, nogil=True)
 def _select(
     points: np.ndarray,
     p: np.ndarray,
     v: np.ndarray,
+    p_lag: np.ndarray,
+    v_lag: np.ndarray,
+    use_lag: bool,
     a_raw: np.ndarray,
     alpha0: float,
     alpha1: float,
@@ -233,20 +263,24 @@ def _select(
     out_r: np.ndarray,
     out_b: np.ndarray,
     out_min: np.ndarray,
+    out_o: np.ndarray,
 ) -> int:
     """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
 
     For each point o: r = p - o, margin m = 2 r.a_raw + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2),
-    i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). Points are binned by
-    the azimuth/elevation of o - p; each bin keeps its smallest margin, and the k_max smallest bins are written to
-    out_r (k_max, 3) in increasing margin order, with their HOCBF right-hand sides b (see ``hocbf_rows``) in
-    out_b, and the smallest margin in out_min[0] (negative: the raw command violates a selected row, so the shield
-    must act). Returns how many were written.
+    i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). With ``use_lag`` each
+    point has a second row, the same barrier at the state predicted one lag ahead (p_lag, v_lag; ``lag_s``), unless
+    that prediction has passed the point ((p_lag - o).(p - o) <= 0, where its row would push towards it); the point
+    competes with its tighter row. Points are binned by the azimuth/elevation of o - p; each bin keeps its smallest
+    margin, and the k_max smallest bins are written to out_r (k_max, 3) in increasing margin order, with their
+    HOCBF right-hand sides b (see ``hocbf_rows``) in out_b, and the smallest margin in out_min[0] (negative: the
+    raw command violates a selected row, so the shield must act), and the selected points in out_o. Returns how
+    many were written.
     """
     n_sec = n_az * n_el
     best_m = np.full(n_sec, np.inf)
     best_i = np.full(n_sec, -1)
-    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    best_lag = np.zeros(n_sec, dtype=np.bool_)
     two_pi = 2.0 * math.pi
     for i in range(points.shape[0]):
         rx = p[0] - points[i, 0]
@@ -255,12 +289,14 @@ def _select(
         d2 = rx * rx + ry * ry + rz * rz
         if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
-        m = (
-            2.0 * (rx * a_raw[0] + ry * a_raw[1] + rz * a_raw[2])
-            + 2.0 * vv
-            + alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
-            + alpha0 * (d2 - r_safe * r_safe)
-        )
+        m = _margin(rx, ry, rz, v, a_raw, alpha0, alpha1, r_safe)
+        lagged = False
+        if use_lag:
+            qx, qy, qz = p_lag[0] - points[i, 0], p_lag[1] - points[i, 1], p_lag[2] - points[i, 2]
+            if qx * rx + qy * ry + qz * rz > 0.0:
+                m_lag = _margin(qx, qy, qz, v_lag, a_raw, alpha0, alpha1, r_safe)
+                if m_lag < m:
+                    m, lagged = m_lag, True
         d = math.sqrt(d2)
         az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
         el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]
@@ -270,6 +306,7 @@ def _select(
         if m < best_m[s]:
             best_m[s] = m
             best_i[s] = i
+            best_lag[s] = lagged
     order = np.argsort(best_m)
     out_min[0] = best_m[order[0]]
     n = 0
@@ -278,12 +315,14 @@ def _select(
         if best_i[s] < 0:
             break
         i = best_i[s]
-        rx, ry, rz = p[0] - points[i, 0], p[1] - points[i, 1], p[2] - points[i, 2]
+        ps, vs = (p_lag, v_lag) if best_lag[s] else (p, v)
+        rx, ry, rz = ps[0] - points[i, 0], ps[1] - points[i, 1], ps[2] - points[i, 2]
         out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
+        out_o[n, 0], out_o[n, 1], out_o[n, 2] = points[i, 0], points[i, 1], points[i, 2]
         # b = -2|v|^2 - alpha1 Bdot - alpha0 B,  Bdot = 2 r.v,  B = |r|^2 - r_safe^2
         out_b[n] = (
-            -2.0 * vv
-            - alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
+            -2.0 * (vs[0] * vs[0] + vs[1] * vs[1] + vs[2] * vs[2])
+            - alpha1 * 2.0 * (rx * vs[0] + ry * vs[1] + rz * vs[2])
             - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
         )
         n += 1
@@ -329,9 +368,11 @@ class HOCBFShield:
         self.camera = camera if camera is not None else CameraConfig()
         self._memory: dict[int, np.ndarray] = {}  # vehicle id -> (memory_steps * K, 3) ring of points (NaN: empty)
         self._memory_head: dict[int, int] = {}
+        self._prev_vel: dict[int, np.ndarray] = {}  # vehicle id -> velocity at its previous call (lag_s)
         self._r_buf = np.zeros((cfg.max_constraints, 3))
         self._b_buf = np.zeros(cfg.max_constraints)
         self._min_buf = np.zeros(1)
+        self._o_buf = np.zeros((cfg.max_constraints, 3))  # the selected obstacle points
         self._a_buf = np.zeros(3)
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
@@ -382,17 +423,28 @@ class HOCBFShield:
 
     # ------------------------------------------------------------------------------ single vehicle
     def constraints(
-        self, points_w: np.ndarray, pos_w: np.ndarray, vel_w: np.ndarray, accel_raw: np.ndarray
+        self,
+        points_w: np.ndarray,
+        pos_w: np.ndarray,
+        vel_w: np.ndarray,
+        accel_raw: np.ndarray,
+        lagged: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Select up to K points and return (r (k, 3), A (k, 3), b (k,)) with rows A a >= b."""
+        """Select up to K points and return (r (k, 3), A (k, 3), b (k,)) with rows A a >= b.
+
+        ``lagged``: (position, velocity) predicted one lag ahead (``lag_s``); each point then also has its row at
+        that state, and keeps the tighter of the two. ``r`` is the offset of the state its row was taken at.
+        """
         c = self.cfg
         pts = np.ascontiguousarray(points_w, dtype=np.float64).reshape(-1, 3)
+        p = np.asarray(pos_w, dtype=np.float64)
+        v = np.asarray(vel_w, dtype=np.float64)
+        p_lag, v_lag = (p, v) if lagged is None else (np.asarray(x, dtype=np.float64) for x in lagged)
         n = _select(
-            pts, np.asarray(pos_w, dtype=np.float64), np.asarray(vel_w, dtype=np.float64),
+            pts, p, v, p_lag, v_lag, lagged is not None,
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
             c.point_filter[1], c.z_window[0], c.z_window[1], c.azimuth_sectors, c.elevation_sectors,
-            c.max_constraints, self._r_buf, self._b_buf,
-            self._min_buf,
+            c.max_constraints, self._r_buf, self._b_buf, self._min_buf, self._o_buf,
         )  # fmt: skip
         r = self._r_buf[:n].copy()
         return r, 2.0 * r, self._b_buf[:n].copy()
@@ -451,13 +503,15 @@ class HOCBFShield:
         if ids is None:
             self._memory.clear()
             self._memory_head.clear()
+            self._prev_vel.clear()
         else:
             for i in np.atleast_1d(ids):
                 self._memory.pop(int(i), None)
                 self._memory_head.pop(int(i), None)
+                self._prev_vel.pop(int(i), None)
 
-    def _remember(self, vid: int, pos: np.ndarray, r: np.ndarray) -> None:
-        """Store the obstacle points o = p - r of this step's constraints in vehicle ``vid``'s ring."""
+    def _remember(self, vid: int, points: np.ndarray) -> None:
+        """Store the obstacle points of this step's constraints in vehicle ``vid``'s ring."""
         k = self.cfg.max_constraints
         ring = self._memory.get(vid)
         if ring is None:
@@ -465,7 +519,7 @@ class HOCBFShield:
             self._memory_head[vid] = 0
         head = self._memory_head[vid]
         ring[head * k : (head + 1) * k] = np.nan
-        ring[head * k : head * k + len(r)] = pos - r
+        ring[head * k : head * k + len(points)] = points
         self._memory_head[vid] = (head + 1) % self.cfg.memory_steps
 
     # ------------------------------------------------------------------------------ batched
@@ -483,8 +537,8 @@ class HOCBFShield:
 
         Vehicle state: ``pos_w`` (N, 3), ``vel_w`` (N, 3). For depth input, ``R_wb`` (N, 3, 3) is the body
         attitude when the image was taken (the camera mount comes from the camera config). ``ids`` (N,) names
-        the vehicles for the point memory (``memory_steps`` > 0) when the batch is a changing subset; default
-        0..N-1.
+        the vehicles for the point memory (``memory_steps`` > 0) and the previous acceleration (``lag_s`` > 0) when
+        the batch is a changing subset; default 0..N-1.
         """
         cmd = np.atleast_2d(np.asarray(command, dtype=np.float64))
         num = len(cmd)
@@ -503,6 +557,7 @@ class HOCBFShield:
         slack = np.zeros(num)
         solve_us = np.zeros(num)
         total_us = np.zeros(num)
+        lag = self.cfg.lag_s
         for i in range(num):
             # Everything a deployed vehicle would run per control step is inside the timed region.
             t0 = time.perf_counter()
@@ -512,32 +567,40 @@ class HOCBFShield:
                 pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel or None)
             else:
                 pts = points_w[i]
+            vid = int(ids[i]) if ids is not None else i
+            p_i, v_i = pos_w[i], vel_w[i]
+            lagged = None
+            if lag > 0.0:
+                # The state the command will act on: the vehicle keeps its current acceleration for one lag.
+                v_prev = self._prev_vel.get(vid)
+                a0 = _ZERO3 if v_prev is None else (v_i - v_prev) / self.cfg.control_dt
+                self._prev_vel[vid] = np.array(v_i, dtype=np.float64)
+                lagged = (p_i + lag * v_i + 0.5 * lag * lag * a0, v_i + lag * a0)
             if self.cfg.memory_steps > 0:
-                vid = int(ids[i]) if ids is not None else i
                 ring = self._memory.get(vid)
                 if ring is not None:
                     pts = np.concatenate(
                         (np.asarray(pts, dtype=np.float64).reshape(-1, 3), ring[~np.isnan(ring[:, 0])])
                     )
-            r_sel, a_mat, b_vec = self.constraints(pts, pos_w[i], vel_w[i], self._a_buf)
+            r_sel, a_mat, b_vec = self.constraints(pts, p_i, v_i, self._a_buf, lagged)
             if self.cfg.memory_steps > 0:
-                self._remember(vid, np.asarray(pos_w[i], dtype=np.float64), r_sel)
+                self._remember(vid, self._o_buf[: len(r_sel)])
             ncon[i] = len(b_vec)
             violated = len(b_vec) > 0 and self._min_buf[0] < 0.0  # smallest margin A a_raw - b < 0
             if self.cfg.min_altitude > 0:
-                b_g = ground_row(pos_w[i][2], vel_w[i][2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.min_altitude)
+                b_g = ground_row(p_i[2], v_i[2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.min_altitude)
                 a_mat = np.vstack((a_mat, _E3))
                 b_vec = np.append(b_vec, b_g)
                 violated = violated or self._a_buf[2] < b_g
             if violated:
-                a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
+                a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, v_i)
                 for _ in range(self.cfg.active_set_iterations if status[i] == STATUS_SOLVED else 0):
                     # Check every point at a*; add the tightest sectors there if any row is broken, and re-solve.
-                    r_new, a_new, b_new = self.constraints(pts, pos_w[i], vel_w[i], a_star)
+                    r_new, a_new, b_new = self.constraints(pts, p_i, v_i, a_star, lagged)
                     if len(b_new) == 0 or self._min_buf[0] >= -self.cfg.active_set_tol:
                         break
                     a_mat, b_vec = np.vstack((a_mat, a_new)), np.concatenate((b_vec, b_new))
-                    a_star, status[i], slack[i], us = self.solve(a_raw[i], a_mat, b_vec, vel_w[i])
+                    a_star, status[i], slack[i], us = self.solve(a_raw[i], a_mat, b_vec, v_i)
                     solve_us[i] += us
                     ncon[i] = len(b_vec) - (self.cfg.min_altitude > 0)
                     if status[i] != STATUS_SOLVED:

@@ -4,6 +4,9 @@
 from the shielded scripted flights at 3/5/7/9 m/s, so the QPs are the ones the shield really meets. Reported per
 solver: QP time over the steps where the shield was active (mean, p99, max) and the active fraction; separately the
 point-cloud + constraint-selection cost and the whole shield step (point cloud, selection, QP, conversion back).
+``formulations`` compares, in the same run, the whole step and the QP of the default shield against the paper's
+formulation (``PAPER_FORMULATION``: one-shot selection, no lag, p1 = p2 = 4 /s), since absolute CPU times move
+2-3x between machines of this kind.
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from shield_nav.scripted import fly
 from shield_nav.shield import HOCBFShield, ShieldConfig, accel_from_command
 
 PAPER = {"mean_us": 90.61, "max_us": 384.5, "active_fraction": 0.1306}
+PAPER_FORMULATION = {"active_set_iterations": 0, "lag_s": 0.0, "alpha0": 16.0, "alpha1": 8.0}
+"""The paper's shield as a switch: select once at the raw command, rows at the current state, our first gains."""
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -34,12 +39,31 @@ def _stats(x: np.ndarray) -> dict:
 def record(duration: float = 4.5) -> list:
     """States (pos, vel, R, cmd, depth) per step of the shielded scripted flights, one entry per vehicle-step."""
     states = []
-    for kind in ("pole", "wall"):
+    for k, kind in enumerate(("pole", "wall")):
         log = fly(kind, [3.0, 5.0, 7.0, 9.0], shielded=True, duration=duration, record_states=True)
         for pos, vel, r_wb, cmd, depth in log.states:
             for i in range(len(pos)):
-                states.append((pos[i : i + 1], vel[i : i + 1], r_wb[i : i + 1], cmd[i : i + 1], depth[i : i + 1]))
+                vid = np.array([4 * k + i])  # per-flight id: the lag's velocity history follows each flight
+                states.append(
+                    (pos[i : i + 1], vel[i : i + 1], r_wb[i : i + 1], cmd[i : i + 1], depth[i : i + 1], vid)
+                )
     return states
+
+
+def replay(shield: HOCBFShield, states: list, repeats: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """QP times of the active steps, whole-step times and activity over ``repeats`` replays (after a warm-up)."""
+    solve, total, active = [], [], []
+    for rep in range(repeats + 1):
+        shield.reset()
+        for pos, vel, r_wb, cmd, depth, vid in states:
+            out = shield.filter(cmd, pos, vel, depth=depth, R_wb=r_wb, ids=vid)
+            if rep == 0:
+                continue  # warm-up pass (numba compilation, solver imports)
+            active.append(bool(out.active[0]))
+            total.append(out.total_us[0])
+            if out.active[0]:
+                solve.append(out.solve_us[0])
+    return np.array(solve), np.array(total), np.array(active)
 
 
 def main(argv: list[str]) -> dict:
@@ -54,28 +78,26 @@ def main(argv: list[str]) -> dict:
     per_solver = []
     whole = None
     for solver in solvers:
-        shield = HOCBFShield(ShieldConfig(solver=solver), cam)
-        solve, total, active = [], [], []
-        for rep in range(args.repeats + 1):
-            for pos, vel, r_wb, cmd, depth in states:
-                out = shield.filter(cmd, pos, vel, depth=depth, R_wb=r_wb)
-                if rep == 0:
-                    continue  # warm-up pass (numba compilation, solver imports)
-                active.append(bool(out.active[0]))
-                total.append(out.total_us[0])
-                if out.active[0]:
-                    solve.append(out.solve_us[0])
-        row = {"solver": solver, **_stats(np.array(solve)), "active_fraction": round(float(np.mean(active)), 4)}
+        solve, total, active = replay(HOCBFShield(ShieldConfig(solver=solver), cam), states, args.repeats)
+        row = {"solver": solver, **_stats(solve), "active_fraction": round(float(np.mean(active)), 4)}
         per_solver.append(row)
         if whole is None:
-            whole = {"solver": solver, **_stats(np.array(total))}
+            whole = {"solver": solver, **_stats(total)}
         if not args.json:
             print(row)
+    formulations = {}
+    for name, cfg in (("default", ShieldConfig()), ("paper", ShieldConfig(**PAPER_FORMULATION))):
+        solve, total, active = replay(HOCBFShield(cfg, cam), states, args.repeats)
+        formulations[name] = {"qp": _stats(solve), "whole_step": _stats(total),
+                              "active_fraction": round(float(np.mean(active)), 4)}  # fmt: skip
+    formulations["whole_step_mean_ratio"] = round(
+        formulations["default"]["whole_step"]["mean_us"] / formulations["paper"]["whole_step"]["mean_us"], 3
+    )
     # Point cloud + selection alone (no QP), over the same states.
     shield = HOCBFShield(ShieldConfig(), cam)
     sel = []
     for rep in range(2):
-        for pos, vel, r_wb, cmd, depth in states:
+        for pos, vel, r_wb, cmd, depth, _ in states:
             a_raw = accel_from_command(cmd)[0]
             t0 = time.perf_counter()
             pts = depth_to_points(depth[0], pos[0], r_wb[0], cam)
@@ -88,6 +110,7 @@ def main(argv: list[str]) -> dict:
         "solvers": per_solver,
         "pointcloud_selection": _stats(np.array(sel)),
         "whole_step": whole,
+        "formulations": formulations,
         "paper": PAPER,
         "goal": {"qp_mean_us": 30, "qp_p99_us": 100, "whole_step_mean_us": 100},
         **machine(),

@@ -40,6 +40,23 @@ class RowConfig:
     """Checkpoint name (a key of ``checkpoints``) for ``controller: policy`` or ``teacher``."""
     shield: bool = False
     """Filter the commands through the HOCBF shield."""
+    shield_overrides: dict[str, Any] = field(default_factory=dict)
+    """This row's shield settings over the run's ``shield`` section (keys of ``ShieldConfig``), e.g. the paper's
+    formulation beside the default shield in one table (``full_paper_shield`` in configs/eval/rows.yaml)."""
+
+
+def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> ShieldConfig:
+    """``base`` with ``row.shield_overrides`` applied and checked; an unknown key or bad value names the row."""
+    known = {f.name for f in dataclasses.fields(ShieldConfig)}
+    bad = sorted(set(row.shield_overrides) - known)
+    if bad:
+        raise EvalError(f"rows.{name}.shield_overrides: unknown key(s) {bad}; known: {sorted(known)}")
+    out = dataclasses.replace(base, **row.shield_overrides)
+    try:
+        out.validate(f"rows.{name}.shield_overrides.")
+    except ConfigError as err:
+        raise EvalError(str(err)) from None
+    return out
 
 
 POLICY_CONTROLLERS = ("policy", "teacher")
@@ -191,6 +208,9 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
             raise EvalError(f"configuration {name!r} is a {row.controller} row but names no checkpoint ('policy:')")
         if row.controller not in POLICY_CONTROLLERS:
             make_baseline(row.controller, cfg.baselines)  # raises on an unknown controller name
+        if row.shield_overrides and not row.shield:
+            raise EvalError(f"configuration {name!r} has shield_overrides but no shield ('shield: true')")
+        row_shield_config(cfg.shield, row, name)  # raises on a bad key or value
         out[name] = row
     return out
 

@@ -15,7 +15,7 @@ from envs.config import ConfigError, load_config
 from envs.navigation.config import NavConfig
 from envs.scenes import FAMILIES, make_scene
 from shield_nav.baselines import Controller, make_baseline
-from shield_nav.evaluation.config import EVAL_FORMAT_VERSION, EvalConfig, EvalError, RowConfig
+from shield_nav.evaluation.config import EVAL_FORMAT_VERSION, EvalConfig, EvalError, RowConfig, row_shield_config
 from shield_nav.evaluation.metrics import aggregate, trajectory_metrics
 from shield_nav.evaluation.policies import LoadedPolicy, LoadedTeacher, PolicyInfo, load_policy, load_teacher
 from shield_nav.shield import STATUS_FALLBACK, STATUS_RELAXED, HOCBFShield
@@ -164,7 +164,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     else:
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
-    shield = HOCBFShield(cfg.shield, env.cfg.camera) if row.shield else None
+    shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
     ids = np.zeros(n, dtype=np.int64)
     pos0 = env.local_pos.copy()
     phi_start = env.field_stack.geodesic(ids, pos0)

@@ -472,3 +472,22 @@ def test_rows_that_read_no_image_skip_the_ray_casting_and_fly_the_same_trials(tm
     on = E.run_unit(dataclasses.replace(spec, policy_env=None))
     assert [t["outcome"] for t in off["trials"]] == [t["outcome"] for t in on["trials"]]
     assert [t["steps"] for t in off["trials"]] == [t["steps"] for t in on["trials"]]
+
+
+def test_row_shield_overrides_change_that_rows_shield_only(tmp_path):
+    """A row's shield_overrides replace the run's shield settings for that row: a shield that sees no point (a
+    1 cm distance window) never acts, while the same controller behind the default shield does; a bad key or value
+    names the row, and overrides without a shield are an error."""
+    blind = ["rows.blind.controller=goal", "rows.blind.shield=true",
+             "rows.blind.shield_overrides.point_filter=[0.0,0.01]"]  # fmt: skip
+    cfg = tiny_cfg("configurations=[shield_only,blind]", *blind)
+    specs = {s.row_name: s for s in E.plan_units(E.prepare(cfg))}
+    active = {n: sum(t["shield"]["active_steps"] for t in E.run_unit(spec)["trials"]) for n, spec in specs.items()}
+    assert active["shield_only"] > 0 and active["blind"] == 0
+    assert E.BUILTIN_ROWS["full_paper_shield"].shield_overrides["active_set_iterations"] == 0
+    with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides: unknown key\(s\) \['alpha2'\]"):
+        E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.alpha2=1.0"))
+    with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides\.lag_s"):
+        E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.lag_s=-1.0"))
+    with pytest.raises(E.EvalError, match="has shield_overrides but no shield"):
+        E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield=false"))

@@ -22,21 +22,33 @@ OBSTACLE_X = 12.0
 """Distance from the start to the obstacle's near side [m]."""
 
 
+OBSTACLE_TOP = 4.0
+"""Height of the pole's and the wall's top [m]; a correction can lift the vehicle over it."""
+
+
 def obstacle(kind: str) -> tuple[list, callable]:
-    """The primitives of a test obstacle and a function giving the distance from points (N, 3) to its surface."""
+    """The primitives of a test obstacle and a function giving the distance from points (N, 3) to its surface.
+
+    The distance is Euclidean in 3-D (to the nearest point of the solid, 0 inside it), so a vehicle that passes
+    over the top or around an end is measured as far as it really is.
+    """
     if kind == "pole":
         r = 0.15
-        prims = [Cylinder((OBSTACLE_X + r, 0.0, 0.0), (OBSTACLE_X + r, 0.0, 4.0), r)]
+        prims = [Cylinder((OBSTACLE_X + r, 0.0, 0.0), (OBSTACLE_X + r, 0.0, OBSTACLE_TOP), r)]
 
         def dist(p: np.ndarray) -> np.ndarray:
-            return np.hypot(p[:, 0] - (OBSTACLE_X + r), p[:, 1]) - r
+            radial = np.maximum(np.hypot(p[:, 0] - (OBSTACLE_X + r), p[:, 1]) - r, 0.0)
+            above = np.maximum(p[:, 2] - OBSTACLE_TOP, 0.0)
+            return np.hypot(radial, above)
 
         return prims, dist
     if kind == "wall":
-        prims = [Box((OBSTACLE_X + 0.1, 0.0, 2.0), (0.1, 6.0, 2.0))]
+        half = np.array([0.1, 6.0, OBSTACLE_TOP / 2])
+        centre = np.array([OBSTACLE_X + 0.1, 0.0, OBSTACLE_TOP / 2])
+        prims = [Box(tuple(centre), tuple(half))]
 
         def dist(p: np.ndarray) -> np.ndarray:
-            return OBSTACLE_X - p[:, 0]
+            return np.linalg.norm(np.maximum(np.abs(p - centre) - half, 0.0), axis=1)
 
         return prims, dist
     raise ValueError(f"unknown obstacle kind {kind!r}; expected 'pole' or 'wall'")

@@ -146,6 +146,63 @@ def fly(
     return FlightLog(t, pos, d, veh.collided_buf.copy(), d.min(axis=0), active, solve_us, total_us, states)
 
 
+def _visible_surface(kind: str, pos: np.ndarray, wall_angle_deg: float) -> np.ndarray:
+    """Dense surface points of the point-mass test obstacles that face ``pos`` (and lie within 10 m of it)."""
+    if kind == "pole":  # radius 0.15 m at x = 12.15 m: every 2 deg around, every 5 cm up
+        ang = np.radians(np.arange(0.0, 360.0, 2.0))
+        normal = np.stack((np.cos(ang), np.sin(ang)), axis=1)
+        xy = np.array([OBSTACLE_X + 0.15, 0.0]) + 0.15 * normal
+        xy = xy[np.sum(normal * (pos[:2] - xy), axis=1) > 0.0]
+        zs = np.arange(0.2, OBSTACLE_TOP, 0.05)
+    elif kind == "wall":  # through (12, 0), turned by wall_angle_deg from facing the flight, 12 m long, every 5 cm
+        t = math.radians(wall_angle_deg)
+        xy = np.array([OBSTACLE_X, 0.0]) + np.arange(-6.0, 6.0, 0.05)[:, None] * np.array([math.sin(t), math.cos(t)])
+        zs = np.arange(0.2, OBSTACLE_TOP, 0.1)
+    else:
+        raise ValueError(f"unknown obstacle kind {kind!r}; expected 'pole' or 'wall'")
+    pts = np.concatenate([np.column_stack((xy, np.full(len(xy), z))) for z in zs])
+    return pts[np.linalg.norm(pts - pos, axis=1) < 10.0]
+
+
+def point_mass_flight(
+    kind: str, speed: float, shield_cfg: ShieldConfig | None = None, wall_angle_deg: float = 30.0,
+    duration: float = 4.5,
+) -> float:  # fmt: skip
+    """Minimum distance to the surface [m] of a shielded point-mass flight at a pole or an angled wall.
+
+    The vehicle is a double integrator that flies exactly the shield's corrected acceleration (no attitude loop,
+    no lag), so what is measured is the shield's geometry alone: the naive goal-seeking acceleration
+    (``2 (v_d - v)``, horizontal <= g tan 40 deg) from 12 m away at ``speed``, every visible surface point given to
+    the shield each 10 ms step (a 2 deg x 5 cm sampling of the 0.15 m pole; a 5 x 10 cm sampling of a 12 m wall
+    turned by ``wall_angle_deg``). The paper's one-shot selection lets it inside ``r_safe`` (docs/shield.md).
+    """
+    g = VehicleConfig().gravity
+    shield = HOCBFShield(shield_cfg)
+    pos, vel = np.array([0.0, 0.0, 1.5]), np.array([speed, 0.0, 0.0])
+    goal = np.array([OBSTACLE_X + 20.0, 0.0, 1.5])
+    t = math.radians(wall_angle_deg)
+    wall_normal = np.array([math.cos(t), -math.sin(t)])
+    dt, d_min = 0.01, math.inf
+    for _ in range(int(round(duration / dt))):
+        to_goal = goal - pos
+        a = 2.0 * (speed * to_goal / np.linalg.norm(to_goal) - vel)
+        h = np.linalg.norm(a[:2])
+        cap = g * math.tan(math.radians(40.0))
+        if h > cap:
+            a[:2] *= cap / h
+        a[2] = min(max(a[2], -5.0), 5.0)
+        cmd = command_from_accel(a[None], np.zeros(1), g)
+        out = shield.filter(cmd, pos[None], vel[None], points_w=[_visible_surface(kind, pos, wall_angle_deg)])
+        vel = vel + dt * out.accel_safe[0]
+        pos = pos + dt * vel
+        if kind == "pole":
+            d = math.hypot(pos[0] - (OBSTACLE_X + 0.15), pos[1]) - 0.15
+        else:
+            d = abs(float(np.dot(pos[:2] - np.array([OBSTACLE_X, 0.0]), wall_normal)))
+        d_min = min(d_min, d)
+    return d_min
+
+
 def step_response(accel: float = 5.0, duration: float = 0.6) -> dict:
     """The vehicle's horizontal acceleration after a step in the commanded acceleration, from hover.
 

@@ -20,14 +20,37 @@ import math
 import time
 from dataclasses import dataclass, field
 
-import numba as nb
 import numpy as np
 import qpsolvers
 import scipy.sparse as sp
 
 from envs.camera import CameraConfig, depth_to_points
 from envs.config import require
-from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
+from shield_nav.shield_rows import (
+    _accel_from_command_1,
+    _command_from_accel_1,
+    _min_margin,
+    _select,
+    accel_from_command,
+    command_from_accel,
+    ground_row,
+    hocbf_rows,
+)
+
+__all__ = [
+    "STATUS_FALLBACK",
+    "STATUS_INACTIVE",
+    "STATUS_NAMES",
+    "STATUS_RELAXED",
+    "STATUS_SOLVED",
+    "HOCBFShield",
+    "ShieldConfig",
+    "ShieldOutput",
+    "accel_from_command",
+    "command_from_accel",
+    "ground_row",
+    "hocbf_rows",
+]
 
 STATUS_INACTIVE = 0
 """No selected constraint was violated by the raw command: returned unchanged, no QP solved."""
@@ -158,238 +181,6 @@ class ShieldConfig:
             f"{prefix}point_filter",
             f"must be [min, max] with 0 <= min < max, got {self.point_filter}",
         )
-
-
-# --------------------------------------------------------------------------------------------- acceleration model
-def accel_from_command(command: np.ndarray, gravity: float = 9.81) -> np.ndarray:
-    """World-frame acceleration of commands (N, 4) = [f_n, phi, theta, psi]: a = f_n R e3 - g e3. Returns (N, 3)."""
-    cmd = np.atleast_2d(command)
-    z_b = euler_zyx_to_rot(cmd[:, 1], cmd[:, 2], cmd[:, 3])[:, :, 2]
-    a = cmd[:, :1] * z_b
-    a[:, 2] -= gravity
-    return a
-
-
-def command_from_accel(accel: np.ndarray, psi: np.ndarray, gravity: float = 9.81) -> np.ndarray:
-    """Inverse of :func:`accel_from_command` for a given yaw: T = a + g e3, f_n = |T|, body z = T / |T|.
-
-    Roll and pitch follow from the attitude with that thrust axis and heading psi (PX4's bodyzToAttitude).
-    Returns (N, 4) = [f_n, phi, theta, psi] with psi unchanged.
-    """
-    a = np.atleast_2d(accel)
-    psi = np.atleast_1d(psi)
-    t = a + np.array([0.0, 0.0, gravity])
-    f_n = np.linalg.norm(t, axis=1)
-    z_d = t / np.maximum(f_n, 1e-12)[:, None]
-    euler = rot_to_euler_zyx(attitude_from_thrust_axis(z_d, psi))
-    return np.concatenate((f_n[:, None], euler[:, :2], psi[:, None]), axis=1)
-
-
-@nb.njit(cache=True, nogil=True)
-def _accel_from_command_1(f_n: float, phi: float, theta: float, psi: float, g: float, out: np.ndarray) -> None:
-    """Scalar :func:`accel_from_command` into ``out`` (3,): a = f_n R(phi, theta, psi) e3 - g e3."""
-    cf, sf, ct, st, cp, sp = (
-        math.cos(phi),
-        math.sin(phi),
-        math.cos(theta),
-        math.sin(theta),
-        math.cos(psi),
-        math.sin(psi),
-    )
-    out[0] = f_n * (cp * st * cf + sp * sf)
-    out[1] = f_n * (sp * st * cf - cp * sf)
-    out[2] = f_n * ct * cf - g
-
-
-@nb.njit(cache=True, nogil=True)
-def _command_from_accel_1(ax: float, ay: float, az: float, psi: float, g: float) -> tuple[float, float, float]:
-    """Scalar :func:`command_from_accel` for one vehicle: returns (f_n, phi, theta)."""
-    tx, ty, tz = ax, ay, az + g
-    f = math.sqrt(tx * tx + ty * ty + tz * tz)
-    zx, zy, zz = tx / f, ty / f, tz / f
-    # x_b = normalize(y_c x z) with y_c = (-sin psi, cos psi, 0); y_b = z x x_b.
-    yx, yy = -math.sin(psi), math.cos(psi)
-    xx, xy, xz = yy * zz, -yx * zz, yx * zy - yy * zx
-    n = math.sqrt(xx * xx + xy * xy + xz * xz)
-    xx, xy, xz = xx / n, xy / n, xz / n
-    ybz = zx * xy - zy * xx
-    phi = math.atan2(ybz, zz)  # atan2(R21, R22)
-    theta = -math.asin(min(1.0, max(-1.0, xz)))  # -asin(R20)
-    return f, phi, theta
-
-
-def ground_row(z: float, v_z: float, alpha0: float, alpha1: float, min_altitude: float) -> float:
-    """Right-hand side b of the ground row a_z >= b: B = z - min_altitude, Bdot = v_z, Bddot = a_z."""
-    return -alpha1 * v_z - alpha0 * (z - min_altitude)
-
-
-def hocbf_rows(
-    r: np.ndarray, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """HOCBF constraint rows A a >= b for offsets r (K, 3) = p - o and velocity v (3,).
-
-    A = 2 r^T,  b = -2|v|^2 - alpha1 Bdot - alpha0 B  with  B = |r|^2 - r_safe^2,  Bdot = 2 r.v.
-    """
-    b_val = np.sum(r * r, axis=1) - r_safe**2
-    b_dot = 2.0 * r @ v
-    return 2.0 * r, -2.0 * float(v @ v) - alpha1 * b_dot - alpha0 * b_val
-
-
-# --------------------------------------------------------------------------------------------- constraint selection
-@nb.njit(cache=True, nogil=True)
-def _margin(rx: float, ry: float, rz: float, v: np.ndarray, a: np.ndarray, alpha0: float, alpha1: float,
-            r_safe: float) -> float:  # fmt: skip
-    """HOCBF row value 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2) (negative: violated)."""
-    return (
-        2.0 * (rx * a[0] + ry * a[1] + rz * a[2])
-        + 2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-        + alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
-        + alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
-    )
-
-
-@nb.njit(cache=True, nogil=True)
-def _min_margin(
-    points: np.ndarray,
-    p: np.ndarray,
-    v: np.ndarray,
-    p_lag: np.ndarray,
-    v_lag: np.ndarray,
-    use_lag: bool,
-    a: np.ndarray,
-    alpha0: float,
-    alpha1: float,
-    r_safe: float,
-    d_min: float,
-    d_max: float,
-    z_lo: float,
-    z_hi: float,
-    out_row: np.ndarray,
-) -> float:
-    """The smallest row value at acceleration ``a`` over every point ``_select`` considers, and that row.
-
-    Same rules as ``_select`` (distance and height windows; with ``use_lag`` the tighter of a point's two rows
-    unless the prediction passed it), without the binning: the active-set check. ``out_row`` gets (r_x, r_y, r_z,
-    b) of the tightest row (A = 2 r), the one a violated check adds to the QP.
-    """
-    best = np.inf
-    best_i = -1
-    best_lag = False
-    for i in range(points.shape[0]):
-        rx = p[0] - points[i, 0]
-        ry = p[1] - points[i, 1]
-        rz = p[2] - points[i, 2]
-        d2 = rx * rx + ry * ry + rz * rz
-        if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
-            continue
-        m = _margin(rx, ry, rz, v, a, alpha0, alpha1, r_safe)
-        lagged = False
-        if use_lag:
-            qx, qy, qz = p_lag[0] - points[i, 0], p_lag[1] - points[i, 1], p_lag[2] - points[i, 2]
-            if qx * rx + qy * ry + qz * rz > 0.0:
-                m_lag = _margin(qx, qy, qz, v_lag, a, alpha0, alpha1, r_safe)
-                if m_lag < m:
-                    m, lagged = m_lag, True
-        if m < best:
-            best, best_i, best_lag = m, i, lagged
-    if best_i >= 0:
-        ps, vs = (p_lag, v_lag) if best_lag else (p, v)
-        rx, ry, rz = ps[0] - points[best_i, 0], ps[1] - points[best_i, 1], ps[2] - points[best_i, 2]
-        out_row[0], out_row[1], out_row[2] = rx, ry, rz
-        out_row[3] = (
-            -2.0 * (vs[0] * vs[0] + vs[1] * vs[1] + vs[2] * vs[2])
-            - alpha1 * 2.0 * (rx * vs[0] + ry * vs[1] + rz * vs[2])
-            - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
-        )
-    return best
-
-
-@nb.njit(cache=True, nogil=True)
-def _select(
-    points: np.ndarray,
-    p: np.ndarray,
-    v: np.ndarray,
-    p_lag: np.ndarray,
-    v_lag: np.ndarray,
-    use_lag: bool,
-    a_raw: np.ndarray,
-    alpha0: float,
-    alpha1: float,
-    r_safe: float,
-    d_min: float,
-    d_max: float,
-    z_lo: float,
-    z_hi: float,
-    n_az: int,
-    n_el: int,
-    k_max: int,
-    out_r: np.ndarray,
-    out_b: np.ndarray,
-    out_min: np.ndarray,
-    out_o: np.ndarray,
-) -> int:
-    """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
-
-    For each point o: r = p - o, margin m = 2 r.a_raw + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2),
-    i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). With ``use_lag`` each
-    point has a second row, the same barrier at the state predicted one lag ahead (p_lag, v_lag; ``lag_s``), unless
-    that prediction has passed the point ((p_lag - o).(p - o) <= 0, where its row would push towards it); the point
-    competes with its tighter row. Points are binned by the azimuth/elevation of o - p; each bin keeps its smallest
-    margin, and the k_max smallest bins are written to out_r (k_max, 3) in increasing margin order, with their
-    HOCBF right-hand sides b (see ``hocbf_rows``) in out_b, and the smallest margin in out_min[0] (negative: the
-    raw command violates a selected row, so the shield must act), and the selected points in out_o. Returns how
-    many were written.
-    """
-    n_sec = n_az * n_el
-    best_m = np.full(n_sec, np.inf)
-    best_i = np.full(n_sec, -1)
-    best_lag = np.zeros(n_sec, dtype=np.bool_)
-    two_pi = 2.0 * math.pi
-    for i in range(points.shape[0]):
-        rx = p[0] - points[i, 0]
-        ry = p[1] - points[i, 1]
-        rz = p[2] - points[i, 2]
-        d2 = rx * rx + ry * ry + rz * rz
-        if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
-            continue
-        m = _margin(rx, ry, rz, v, a_raw, alpha0, alpha1, r_safe)
-        lagged = False
-        if use_lag:
-            qx, qy, qz = p_lag[0] - points[i, 0], p_lag[1] - points[i, 1], p_lag[2] - points[i, 2]
-            if qx * rx + qy * ry + qz * rz > 0.0:
-                m_lag = _margin(qx, qy, qz, v_lag, a_raw, alpha0, alpha1, r_safe)
-                if m_lag < m:
-                    m, lagged = m_lag, True
-        d = math.sqrt(d2)
-        az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
-        el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]
-        ia = min(int(az / two_pi * n_az), n_az - 1)
-        ie = min(int(el / math.pi * n_el), n_el - 1)
-        s = ie * n_az + ia
-        if m < best_m[s]:
-            best_m[s] = m
-            best_i[s] = i
-            best_lag[s] = lagged
-    order = np.argsort(best_m)
-    out_min[0] = best_m[order[0]]
-    n = 0
-    for j in range(min(k_max, n_sec)):
-        s = order[j]
-        if best_i[s] < 0:
-            break
-        i = best_i[s]
-        ps, vs = (p_lag, v_lag) if best_lag[s] else (p, v)
-        rx, ry, rz = ps[0] - points[i, 0], ps[1] - points[i, 1], ps[2] - points[i, 2]
-        out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
-        out_o[n, 0], out_o[n, 1], out_o[n, 2] = points[i, 0], points[i, 1], points[i, 2]
-        # b = -2|v|^2 - alpha1 Bdot - alpha0 B,  Bdot = 2 r.v,  B = |r|^2 - r_safe^2
-        out_b[n] = (
-            -2.0 * (vs[0] * vs[0] + vs[1] * vs[1] + vs[2] * vs[2])
-            - alpha1 * 2.0 * (rx * vs[0] + ry * vs[1] + rz * vs[2])
-            - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
-        )
-        n += 1
-    return n
 
 
 # --------------------------------------------------------------------------------------------- the shield

@@ -104,6 +104,36 @@ def _margin(rx: float, ry: float, rz: float, v: np.ndarray, a: np.ndarray, alpha
 
 
 @nb.njit(cache=True, nogil=True)
+def _rhs(rx: float, ry: float, rz: float, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float) -> float:
+    """Right-hand side b of the row 2 r.a >= b: -2|v|^2 - alpha1 Bdot - alpha0 B, Bdot = 2 r.v, B = |r|^2 - r_safe^2."""
+    return (
+        -2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        - alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
+        - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def _tighter_margin(
+    o: np.ndarray, rx: float, ry: float, rz: float, v: np.ndarray, p_lag: np.ndarray, v_lag: np.ndarray,
+    use_lag: bool, a: np.ndarray, alpha0: float, alpha1: float, r_safe: float,
+) -> tuple[float, bool]:  # fmt: skip
+    """Margin of point o at ``a`` (r = p - o given) and whether its row at the lagged state is the tighter one.
+
+    With ``use_lag`` the row at (p_lag, v_lag) competes unless that prediction has passed the point
+    ((p_lag - o).(p - o) <= 0, where its row would push towards it).
+    """
+    m = _margin(rx, ry, rz, v, a, alpha0, alpha1, r_safe)
+    if use_lag:
+        qx, qy, qz = p_lag[0] - o[0], p_lag[1] - o[1], p_lag[2] - o[2]
+        if qx * rx + qy * ry + qz * rz > 0.0:
+            m_lag = _margin(qx, qy, qz, v_lag, a, alpha0, alpha1, r_safe)
+            if m_lag < m:
+                return m_lag, True
+    return m, False
+
+
+@nb.njit(cache=True, nogil=True)
 def _min_margin(
     points: np.ndarray,
     p: np.ndarray,
@@ -137,25 +167,14 @@ def _min_margin(
         d2 = rx * rx + ry * ry + rz * rz
         if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
-        m = _margin(rx, ry, rz, v, a, alpha0, alpha1, r_safe)
-        lagged = False
-        if use_lag:
-            qx, qy, qz = p_lag[0] - points[i, 0], p_lag[1] - points[i, 1], p_lag[2] - points[i, 2]
-            if qx * rx + qy * ry + qz * rz > 0.0:
-                m_lag = _margin(qx, qy, qz, v_lag, a, alpha0, alpha1, r_safe)
-                if m_lag < m:
-                    m, lagged = m_lag, True
+        m, lagged = _tighter_margin(points[i], rx, ry, rz, v, p_lag, v_lag, use_lag, a, alpha0, alpha1, r_safe)
         if m < best:
             best, best_i, best_lag = m, i, lagged
     if best_i >= 0:
         ps, vs = (p_lag, v_lag) if best_lag else (p, v)
         rx, ry, rz = ps[0] - points[best_i, 0], ps[1] - points[best_i, 1], ps[2] - points[best_i, 2]
         out_row[0], out_row[1], out_row[2] = rx, ry, rz
-        out_row[3] = (
-            -2.0 * (vs[0] * vs[0] + vs[1] * vs[1] + vs[2] * vs[2])
-            - alpha1 * 2.0 * (rx * vs[0] + ry * vs[1] + rz * vs[2])
-            - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
-        )
+        out_row[3] = _rhs(rx, ry, rz, vs, alpha0, alpha1, r_safe)
     return best
 
 
@@ -207,14 +226,7 @@ def _select(
         d2 = rx * rx + ry * ry + rz * rz
         if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
-        m = _margin(rx, ry, rz, v, a_raw, alpha0, alpha1, r_safe)
-        lagged = False
-        if use_lag:
-            qx, qy, qz = p_lag[0] - points[i, 0], p_lag[1] - points[i, 1], p_lag[2] - points[i, 2]
-            if qx * rx + qy * ry + qz * rz > 0.0:
-                m_lag = _margin(qx, qy, qz, v_lag, a_raw, alpha0, alpha1, r_safe)
-                if m_lag < m:
-                    m, lagged = m_lag, True
+        m, lagged = _tighter_margin(points[i], rx, ry, rz, v, p_lag, v_lag, use_lag, a_raw, alpha0, alpha1, r_safe)
         d = math.sqrt(d2)
         az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
         el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]
@@ -237,11 +249,6 @@ def _select(
         rx, ry, rz = ps[0] - points[i, 0], ps[1] - points[i, 1], ps[2] - points[i, 2]
         out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
         out_o[n, 0], out_o[n, 1], out_o[n, 2] = points[i, 0], points[i, 1], points[i, 2]
-        # b = -2|v|^2 - alpha1 Bdot - alpha0 B,  Bdot = 2 r.v,  B = |r|^2 - r_safe^2
-        out_b[n] = (
-            -2.0 * (vs[0] * vs[0] + vs[1] * vs[1] + vs[2] * vs[2])
-            - alpha1 * 2.0 * (rx * vs[0] + ry * vs[1] + rz * vs[2])
-            - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
-        )
+        out_b[n] = _rhs(rx, ry, rz, vs, alpha0, alpha1, r_safe)
         n += 1
     return n

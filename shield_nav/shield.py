@@ -75,8 +75,7 @@ class ShieldConfig:
     (docs/shield.md, "Tuning"). Larger values allow later, harder corrections (less conservative); smaller values
     brake earlier. A vehicle passing a point at lateral offset l and speed V with a = 0 violates the row when
     l^2 < r_safe^2 + 2 V^2 / p^2 (p1 = p2 = p): p = 2 /s triggers for every obstacle within 3.6 m of the path at
-    5 m/s and kept the shield on in 99 % of steps; p = 4 /s (the previous default, and our paper-formulation
-    switch) in 61 % of steps behind the Dijkstra + CBF policy at 3 m/s; p = 8 /s in 16 %."""
+    5 m/s (docs/shield.md, "Gains" and "Tuning")."""
     alpha1: float = 16.0
     """HOCBF coefficient on Bdot [1/s]."""
     r_safe: float = 0.5
@@ -87,13 +86,11 @@ class ShieldConfig:
     """After each QP, the whole cloud is checked at the corrected acceleration a*: if a point's row is violated
     (the selection ranked margins at the *raw* command, so the point that binds after the correction can have been
     dropped), the most violated row is added and the QP is solved again, up to this many times (a cutting-plane
-    active set; on 1,000 random clouds 4 rounds left 1 answer unsafe, 8 none: docs/shield.md). 0: select once at
-    the raw command (the paper's formulation, kept as a switch)."""
+    active set; docs/shield.md). 0: select once at the raw command (the paper's formulation, kept as a switch)."""
     active_set_tol: float = 0.01
     """Violation [m^2/s^2 of the HOCBF row] below which a point counts as satisfied in that check. A row is
-    2 r.a >= b, so 0.01 is at most 0.01 m/s^2 of acceleration along r at r_safe = 0.5 m. A tolerance of 1e-6 added
-    rounds for such slivers (1.58 QP solves per active step on the benchmark states against 1.15, whole step 152
-    against 91 us mean; docs/shield.md "Cost")."""
+    2 r.a >= b, so 0.01 is at most 0.01 m/s^2 of acceleration along r at r_safe = 0.5 m; a much smaller tolerance
+    adds rounds for such slivers (docs/shield.md, "Cost")."""
     azimuth_sectors: int = 12
     """Azimuth bins of the direction from the vehicle to a point (world frame)."""
     elevation_sectors: int = 3

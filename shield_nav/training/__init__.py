@@ -17,7 +17,8 @@ A run lives in ``<log_root>/<experiment_name>/<YYYY-mm-dd_HH-MM-SS>_<name>/``:
   GRU state, ``(obs, depth, h_in) -> (actions, h_out)``.
 
 Modules: :mod:`~shield_nav.training.config` (the typed config, its checks, rsl-rl's dict) and
-:mod:`~shield_nav.training.runner` (runners, env, run folders, resume, signals, exports, the CLI). Everything
+:mod:`~shield_nav.training.runner` (runners, env, run folders, resume, signals, exports, the CLI) and
+:mod:`~shield_nav.training.pipeline` (staged recipes: several runs in sequence from one config, resumable). Everything
 public is re-exported here.
 """
 

@@ -274,6 +274,7 @@ def train(
     cfg: TrainConfig,
     resume: str | os.PathLike | None = None,
     env_factory: Callable[[TrainConfig], VecEnv] = make_env,
+    run_dir: str | None = None,
 ) -> str:
     """Train (or resume) one run; return its folder.
 
@@ -283,6 +284,8 @@ def train(
             are restored, logging continues in the checkpoint's folder (tensorboard curves continue at ``it + 1``),
             and training runs until ``cfg.max_iterations`` iterations exist in total.
         env_factory: Builds the VecEnv from ``cfg`` (tests pass a small synthetic env).
+        run_dir: The run folder to use instead of a new time-stamped one (a pipeline's stage folder); a ``resume``
+            checkpoint inside it continues there.
     """
     rank = int(os.getenv("RANK", "0"))
     world = int(os.getenv("WORLD_SIZE", "1"))
@@ -296,7 +299,9 @@ def train(
     torch.manual_seed(cfg.seed + rank)
     print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)
 
-    if resume is not None and glob.glob(os.path.join(os.path.dirname(os.path.abspath(resume)), "events.out.tfevents*")):
+    if run_dir is not None:
+        os.makedirs(run_dir, exist_ok=True)
+    elif resume is not None and glob.glob(os.path.join(os.path.dirname(os.path.abspath(resume)), "events.out.tf*")):
         run_dir = os.path.dirname(os.path.abspath(resume))
     elif resume is not None:
         # A packaged policy (checkpoints/<name>/model.pt) has no run folder: continue in a new one under log_dir.
@@ -433,12 +438,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="sets seed and env.seed")
     p.add_argument("--device", help="cpu | cuda | cuda:i")
     p.add_argument("--log-dir", help="root of the run folders (default: logs)")
-    p.add_argument("--resume", help="model_<it>.pt to continue (its run folder and stored config are reused)")
+    p.add_argument(
+        "--resume",
+        help="model_<it>.pt to continue (its run folder and stored config are reused), or a "
+        "pipeline folder (its finished stages are skipped)",
+    )
     return p
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
+def overrides_from_args(args: argparse.Namespace) -> list[str]:
+    """``--set`` plus the shorthand flags, as dotted overrides in the order they apply."""
     overrides = list(args.set)
     if args.num_envs is not None:
         overrides.append(f"env.num_envs={args.num_envs}")
@@ -450,6 +459,12 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         overrides.append(f"device={args.device}")
     if args.log_dir is not None:
         overrides.append(f"log_root={args.log_dir}")
+    return overrides
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
+    overrides = overrides_from_args(args)
     if args.resume is not None:
         check_checkpoint(args.resume, "--resume")
         if args.config is not None:
@@ -468,7 +483,31 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python train.py ...``: parse, resolve the config (failing fast on bad keys), train."""
+    from shield_nav.training import pipeline
+
     args = build_parser().parse_args(argv)
+    staged = (args.resume is not None and os.path.isdir(args.resume)) or (
+        args.resume is None and args.config is not None and pipeline.is_pipeline_file(args.config)
+    )
+    if staged:  # a staged recipe: its stages run in sequence (shield_nav/training/pipeline.py)
+        try:
+            if args.max_iterations is not None:
+                raise ConfigError(
+                    "--max-iterations: a pipeline's stages set their own; use "
+                    "--set max_iterations=N to change every stage, or edit the stage's 'set'"
+                )
+            overrides = overrides_from_args(args)
+            if args.resume is not None:
+                root = args.resume
+                pipeline.load_stored(root, overrides)  # fail on a bad override before any work
+            else:
+                root = pipeline.start(pipeline.load_pipeline(args.config), overrides)
+        except (ConfigError, ValueError) as err:
+            print(f"train.py: error: {err}", file=sys.stderr)
+            return 2
+        print(f"[pipeline] folder: {root}", flush=True)
+        pipeline.run(root, overrides)
+        return 0
     try:
         cfg = config_from_args(args)
         check_files(cfg, args.resume)

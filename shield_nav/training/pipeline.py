@@ -64,6 +64,12 @@ class Pipeline:
     source: str = ""
 
 
+def _check_name(value: Any, key: str, where: str) -> str:
+    if not isinstance(value, str) or not _NAME.match(value):
+        raise ConfigError(f"pipeline key '{key}' {where}: must be a lower-case identifier, got {value!r}")
+    return value
+
+
 def is_pipeline_file(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a pipeline file (a YAML mapping with a ``stages`` key) rather than a train config."""
     try:
@@ -89,9 +95,7 @@ def load_pipeline(path: str | os.PathLike) -> Pipeline:
     unknown = sorted(set(raw) - _PIPELINE_KEYS)
     if unknown:
         raise ConfigError(f"pipeline key {unknown[0]!r} {where}: unknown; known: {sorted(_PIPELINE_KEYS)}")
-    name = raw.get("name")
-    if not isinstance(name, str) or not _NAME.match(name):
-        raise ConfigError(f"pipeline key 'name' {where}: must be a lower-case identifier, got {name!r}")
+    name = _check_name(raw.get("name"), "name", where)
     items = raw.get("stages")
     if not isinstance(items, list) or not items:
         raise ConfigError(f"pipeline key 'stages' {where}: must be a non-empty list of stages")
@@ -103,9 +107,7 @@ def load_pipeline(path: str | os.PathLike) -> Pipeline:
         unknown = sorted(set(item) - _STAGE_KEYS)
         if unknown:
             raise ConfigError(f"pipeline key '{key}.{unknown[0]}' {where}: unknown; known: {sorted(_STAGE_KEYS)}")
-        sname = item.get("name")
-        if not isinstance(sname, str) or not _NAME.match(sname):
-            raise ConfigError(f"pipeline key '{key}.name' {where}: must be a lower-case identifier, got {sname!r}")
+        sname = _check_name(item.get("name"), f"{key}.name", where)
         if any(s.name == sname for s in stages):
             raise ConfigError(f"pipeline key '{key}.name' {where}: stage name {sname!r} is used twice")
         config = item.get("config")
@@ -175,20 +177,6 @@ def check_inputs(names: Sequence[str], configs: Sequence[TrainConfig], produced:
                 raise ConfigError(f"pipeline stage '{name}': config key 'runner.{key}': no such file {path!r}")
 
 
-def _new_root(cfg: TrainConfig, name: str) -> str:
-    stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    base = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{name}")
-    os.makedirs(os.path.dirname(base), exist_ok=True)
-    path, k = base, 1
-    while True:
-        try:
-            os.mkdir(path)
-            return path
-        except FileExistsError:
-            k += 1
-            path = f"{base}_{k}"
-
-
 def _latest_checkpoint(run_dir: str) -> str | None:
     found = []
     for path in glob.glob(os.path.join(run_dir, "model_*.pt")):
@@ -209,7 +197,9 @@ def start(pipeline: Pipeline, overrides: Sequence[str] = ()) -> str:
     pairs = enumerate(zip(pipeline.stages, probe, strict=True))
     produced = {final_checkpoint(stage_dir("<pipeline>", i, s), c) for i, (s, c) in pairs}
     check_inputs([s.name for s in pipeline.stages], probe, produced)
-    root = _new_root(probe[0], pipeline.name)
+    from shield_nav.training.runner import new_stamped_dir
+
+    root = new_stamped_dir(probe[0], pipeline.name)
     configs = resolve(pipeline, root, overrides)
     record = {
         "name": pipeline.name,

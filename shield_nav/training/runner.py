@@ -145,14 +145,14 @@ def _randomize_episode_lengths(env: VecEnv) -> None:
     env.episode_length_buf = (torch.rand(env.num_envs) * limit).long()
 
 
-def _new_run_dir(cfg: TrainConfig) -> str:
+def new_stamped_dir(cfg: TrainConfig, name: str) -> str:
     """A fresh ``<log_root>/<experiment>/<stamp>_<name>`` folder, claimed atomically.
 
     Runs of the same config started within the same second (e.g. several seeds launched together) would otherwise
     share one folder and overwrite each other's checkpoints: the second and later get ``_2``, ``_3``, ...
     """
     stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    base = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{cfg.name}")
+    base = os.path.join(cfg.log_root, cfg.experiment_name, f"{stamp}_{name}")
     os.makedirs(os.path.dirname(base), exist_ok=True)
     path, k = base, 1
     while True:
@@ -162,6 +162,12 @@ def _new_run_dir(cfg: TrainConfig) -> str:
         except FileExistsError:
             k += 1
             path = f"{base}_{k}"
+    return path
+
+
+def _new_run_dir(cfg: TrainConfig) -> str:
+    """A fresh run folder for ``cfg`` (:func:`new_stamped_dir`) with its ``params/`` subfolder."""
+    path = new_stamped_dir(cfg, cfg.name)
     os.makedirs(os.path.join(path, "params"), exist_ok=True)
     return path
 
@@ -499,6 +505,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             overrides = overrides_from_args(args)
             if args.resume is not None:
                 root = args.resume
+                if args.config is not None:
+                    print(f"[pipeline] --resume: using the folder's stored configs; ignoring --config {args.config}",
+                          flush=True)  # fmt: skip
                 pipeline.load_stored(root, overrides)  # fail on a bad override before any work
             else:
                 root = pipeline.start(pipeline.load_pipeline(args.config), overrides)

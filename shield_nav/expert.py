@@ -12,7 +12,8 @@ Every control step, for every env at once (numpy over envs, a short loop over pa
    samples before and after it, over that arc length (a kink the vehicle cannot follow anyway is spread over the
    window). The speed cap there is ``min(v_target, sqrt(lat_accel / kappa), clear_gain * (d - r_vehicle))``;
    a backward pass ``v_k <= sqrt(v_{k+1}^2 + 2 brake_accel ds)`` makes every cap reachable by braking, so the
-   vehicle never arrives at a turn or a gap faster than it can take it.
+   vehicle never arrives at a turn or a gap faster than it can take it. With ``visibility: camera`` the caps beyond
+   the first path sample the depth camera cannot see are ``min_speed``: the profile plans only on what is in view.
 3. **Tracker.** The attitude loop acts ``lag_s`` after a command (measured from the vehicle's step response,
    docs/expert.md), so the reference is read ``|v| lag_s`` along the path: speed ``v_r`` there, direction the chord
    to the point ``max(lookahead_min, |v| lookahead_s)`` ahead (pure pursuit pulls back onto the path), and the
@@ -99,6 +100,14 @@ class ExpertConfig:
     """Samples over which the feedforward d(v t)/ds is differenced (a one-sample difference is noise)."""
     max_tilt_deg: float = 48.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50)."""
+    visibility: str = "map"
+    """What the speed profile may plan on. ``map``: the whole path, including bends round obstacles the camera does
+    not show yet (privileged look-ahead). ``camera``: the path only up to its first sample the depth camera cannot
+    see (outside its field of view or range, or with an obstacle on the line of sight by the ESDF); from there the
+    cap is ``min_speed``, so the expert can always brake to a crawl before space it has not seen."""
+    los_step: float = 0.5
+    """Spacing [m] of the points checked on each line of sight (``visibility: camera``): the line is clear when the
+    ESDF at every point exceeds half the spacing, so the balls round the points cover it."""
 
     def validate(self, prefix: str = "") -> None:
         """Positive lengths, gains and limits, naming the key."""
@@ -118,10 +127,16 @@ class ExpertConfig:
                 f"{TRACKERS}")  # fmt: skip
         require(self.tangent_span >= 1, f"{prefix}tangent_span", f"must be >= 1, got {self.tangent_span}")
         require(self.k_x >= 0, f"{prefix}k_x", f"must be >= 0, got {self.k_x}")
+        require(self.visibility in VISIBILITIES, f"{prefix}visibility", f"unknown visibility {self.visibility!r}; "
+                f"expected one of {VISIBILITIES}")  # fmt: skip
+        require(self.los_step > 0, f"{prefix}los_step", f"must be > 0, got {self.los_step}")
 
 
 TRACKERS = ("chord", "tangent")
 """Reference directions of the tracker (:attr:`ExpertConfig.tracker`)."""
+
+VISIBILITIES = ("map", "camera")
+"""What the speed profile may plan on (:attr:`ExpertConfig.visibility`)."""
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -163,6 +178,40 @@ def windowed_curvature(path: np.ndarray, window: int) -> np.ndarray:
     mid = 0.5 * (cum[:, :-1] + cum[:, 1:])  # arc length at each segment's midpoint (N, K)
     arc = np.maximum(mid[:, b] - mid[:, a], 1e-9)
     return np.where(b > a, angle / arc, 0.0)
+
+
+def visible_samples(path: np.ndarray, cam_pos: np.ndarray, R_wc: np.ndarray, cam: Any, esdf: Any,
+                    los_step: float) -> np.ndarray:  # fmt: skip
+    """Which path samples (N, K+1) the depth camera sees: in its frustum and range, with a free line of sight.
+
+    Args:
+        path: Paths (N, K+1, 3) in the frame of ``cam_pos``.
+        cam_pos: Optical centres (N, 3).
+        R_wc: Camera rotations (N, 3, 3), columns the optical axes (x right, y down, z forward) in that frame.
+        cam: A :class:`envs.camera.CameraConfig` (``hfov_deg``, ``vfov_deg``, ``max_range``).
+        esdf: ``esdf(points (N, M, 3)) -> (N, M)`` signed distance to the obstacles (> 0 free).
+        los_step: Largest spacing of the points checked on a line of sight [m].
+
+    A sample is seen when its z-depth is in ``(0, max_range]``, it is inside the horizontal and vertical field of
+    view, and its line of sight is clear: ``m = ceil(max_range / los_step)`` points evenly inside the segment from
+    the camera, spacing ``s = |segment| / (m + 1)``, each with ESDF above ``s / 2`` (the balls cover the segment, so
+    no obstacle can hide between two points). Sample 0 (the vehicle) is always seen.
+    """
+    n, kp1, _ = path.shape
+    rel = path - cam_pos[:, None, :]
+    pc = np.einsum("nji,nkj->nki", R_wc, rel)  # R_wc^T rel: camera-frame coordinates
+    z = pc[..., 2]
+    tan_h = math.tan(math.radians(cam.hfov_deg) / 2.0)
+    tan_v = math.tan(math.radians(cam.vfov_deg) / 2.0)
+    seen = (z > 0) & (z <= cam.max_range) & (np.abs(pc[..., 0]) <= z * tan_h) & (np.abs(pc[..., 1]) <= z * tan_v)
+    m = max(1, math.ceil(cam.max_range / los_step))
+    t = np.arange(1, m + 1) / (m + 1)
+    pts = cam_pos[:, None, None, :] + t[None, None, :, None] * rel[:, :, None, :]  # (N, K+1, m, 3)
+    d = np.asarray(esdf(pts.reshape(n, -1, 3))).reshape(n, kp1, m)
+    half = 0.5 * np.linalg.norm(rel, axis=2) / (m + 1)
+    seen &= (d > half[..., None]).all(axis=2)
+    seen[:, 0] = True
+    return seen
 
 
 class PlannerController:
@@ -293,8 +342,23 @@ class PlannerController:
         if ec.clear_gain > 0:
             margin = clear - env.cfg.vehicle.airframe.collision_radius
             cap = np.minimum(cap, ec.clear_gain * np.maximum(margin, 0.0))
-        v = speed_profile(kappa, cap, ec.lat_accel, ec.brake_accel, ec.ds, ec.min_speed)
-        return {"path": path, "clear": clear, "kappa": kappa, "speed": v}
+        out = {"path": path, "clear": clear, "kappa": kappa}
+        if ec.visibility == "camera":
+            from envs.camera.model import camera_poses
+
+            cam_pos, R_wc = camera_poses(env.cfg.camera, env.local_pos, env.vehicles.R_wb)
+            ids = env.scene_id_buf
+
+            def esdf(pts: np.ndarray) -> np.ndarray:
+                flat = pts.reshape(-1, 3)
+                return env.field_stack.esdf(np.repeat(ids, pts.shape[1]), flat).reshape(pts.shape[:2])
+
+            seen = np.logical_and.accumulate(visible_samples(path, cam_pos, R_wc, env.cfg.camera, esdf,
+                                                             ec.los_step), axis=1)  # fmt: skip
+            cap = np.where(seen, cap, ec.min_speed)
+            out["seen"] = seen
+        out["speed"] = speed_profile(kappa, cap, ec.lat_accel, ec.brake_accel, ec.ds, ec.min_speed)
+        return out
 
     def commands(self, env: Any) -> np.ndarray:
         """Commands (N, 4) = [f_n, phi, theta, psi] (see the module docstring)."""

@@ -8,7 +8,7 @@ import pytest
 from envs.config import ConfigError, load_config
 from envs.navigation import NavigationEnv
 from shield_nav.baselines import BaselineConfig, PlannerExpert, make_baseline
-from shield_nav.expert import ExpertConfig, PlannerController, speed_profile, windowed_curvature
+from shield_nav.expert import ExpertConfig, PlannerController, speed_profile, visible_samples, windowed_curvature
 
 SMALL = {"scenes.indices": [0, 1], "episode.initial_speed_fraction": [0.3, 0.5]}
 
@@ -99,7 +99,7 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 
 
 @pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
-                                            ("lag_s", -0.1)])  # fmt: skip
+                                            ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})
@@ -138,3 +138,53 @@ def test_tangent_tracker_follows_the_path_direction_by_hand():
     expect = last["speed"][rows, k, None] * (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
     expect += 2.0 * (p0 - (pos + vel * ec.lag_s))
     np.testing.assert_allclose(last["v_ref"], expect, rtol=1e-9, atol=1e-12)
+
+
+def test_visible_samples_by_hand():
+    """Frustum, range and line of sight for a camera at the origin looking along world +x (87 x 58 deg, 10 m)."""
+    from envs.camera import CameraConfig
+
+    cam = CameraConfig()
+    R_wc = np.array([[[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]])  # columns: right=-y, down=-z, axis=+x
+    samples = [
+        (0.0, 0.0, 0.0),  # the vehicle: always seen
+        (5.0, 0.0, 0.0),  # straight ahead
+        (11.0, 0.0, 0.0),  # beyond the 10 m range
+        (5.0, 4.5, 0.0),  # 42.0 deg left: inside the 43.5 deg half field of view
+        (5.0, 5.0, 0.0),  # 45.0 deg left: outside
+        (5.0, 0.0, 2.5),  # 26.6 deg up: inside the 29 deg half field of view
+        (5.0, 0.0, 3.5),  # 35.0 deg up: outside
+        (-2.0, 0.0, 0.0),  # behind
+        (8.0, -3.0, 0.0),  # 20.6 deg right, but a 0.3 m ball sits on its line of sight at (4, -1.5, 0)
+        (8.0, 3.0, 0.0),  # the mirror image: clear
+    ]
+    path = np.array(samples)[None]
+    centre, radius = np.array([4.0, -1.5, 0.0]), 0.3
+
+    def esdf(pts):
+        return np.linalg.norm(pts - centre, axis=-1) - radius
+
+    seen = visible_samples(path, np.zeros((1, 3)), R_wc, cam, esdf, los_step=0.5)
+    assert seen[0].tolist() == [True, True, False, True, False, True, False, False, False, True]
+    # A coarse line of sight would step over the ball (points 1.2 m apart); the covering rule still sees it.
+    assert not visible_samples(path, np.zeros((1, 3)), R_wc, cam, esdf, los_step=1.5)[0, 8]
+
+
+def test_camera_visibility_slows_the_profile_before_unseen_path():
+    """With visibility 'camera' the caps after the first unseen sample are min_speed, so the profile brakes into it;
+    turning the vehicle's back to its path leaves only the vehicle's own sample seen."""
+    env = _env(n=4, speed=9.0)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(visibility="camera")))
+    plan = ctrl.plan(env)
+    seen, speed, ec = plan["seen"], plan["speed"], ctrl.ec
+    assert seen[:, 0].all() and np.all(np.diff(seen.astype(int), axis=1) <= 0)  # a seen prefix
+    free = PlannerController(BaselineConfig()).plan(env)["speed"]
+    assert np.all(speed <= free + 1e-12)
+    np.testing.assert_allclose(speed[~seen], ec.min_speed)
+    # facing away from the path (yaw + 180 deg): nothing ahead is seen, the vehicle must crawl from here
+    from envs.vehicle.rotations import quat_mul
+
+    env.vehicles.quat_wb[:] = quat_mul(np.array([[0.0, 0.0, 0.0, 1.0]]), env.vehicles.quat_wb.copy())  # yaw by pi
+    plan = ctrl.plan(env)
+    assert not plan["seen"][:, 1:].any()
+    np.testing.assert_allclose(plan["speed"][:, 0], np.sqrt(ec.min_speed**2 + 2 * ec.brake_accel * ec.ds), rtol=1e-9)

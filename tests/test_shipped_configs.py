@@ -7,6 +7,7 @@ import pytest
 
 from shield_nav import evaluation as E
 from shield_nav.training import load_train_config, rsl_rl_train_cfg
+from shield_nav.training import pipeline as P
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -14,8 +15,21 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 @pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(REPO, "configs", "train", "*.yaml")))
                          + sorted(glob.glob(os.path.join(REPO, "configs", "experiments", "*.yaml"))))  # fmt: skip
 def test_train_configs_load(path):
-    """The release configs and the experiments' (whose start checkpoints may have left the tree) load strictly."""
-    cfg = load_train_config(path)
+    """The release configs and the experiments' (whose start checkpoints may have left the tree) load strictly.
+
+    A pipeline file is checked stage by stage: each stage's config resolves (``${stage}`` references included).
+    """
+    if P.is_pipeline_file(path):
+        pipeline = P.load_pipeline(path)
+        configs = P.resolve(pipeline, "/nonexistent-root")
+        assert len(configs) == len(pipeline.stages) >= 1
+        for cfg in configs:
+            _check_train_config(cfg, path)
+        return
+    _check_train_config(load_train_config(path), path)
+
+
+def _check_train_config(cfg, path):
     d = rsl_rl_train_cfg(cfg)
     if cfg.runner.class_name == "DistillationRunner":
         assert {"student", "teacher"} <= set(d) and "critic" not in d

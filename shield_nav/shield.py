@@ -33,6 +33,7 @@ from shield_nav.shield_rows import (
     _select,
     accel_from_command,
     command_from_accel,
+    ceiling_row,
     ground_row,
     hocbf_rows,
 )
@@ -48,6 +49,7 @@ __all__ = [
     "ShieldOutput",
     "accel_from_command",
     "command_from_accel",
+    "ceiling_row",
     "ground_row",
     "hocbf_rows",
 ]
@@ -62,6 +64,7 @@ STATUS_FALLBACK = 3
 """Both QPs failed (solver error): a braking command within the actuator limits was returned."""
 STATUS_NAMES = {0: "inactive", 1: "solved", 2: "relaxed", 3: "fallback"}
 _E3 = np.array([[0.0, 0.0, 1.0]])
+_NEG_E3 = -_E3
 _ZERO3 = np.zeros(3)
 
 
@@ -137,6 +140,10 @@ class ShieldConfig:
     Unlike the point barrier it is exact for a plane, so level flight never triggers it. 0: off (the paper's
     depth-only shield). Without it the obstacle rows' corrections can push a vehicle into the unseen ground
     (docs/shield.md, "Ground row")."""
+    max_altitude: float = 0.0
+    """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
+    gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
+    lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Altitude band")."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
@@ -152,6 +159,11 @@ class ShieldConfig:
             math.isfinite(self.min_altitude) and self.min_altitude >= 0,
             f"{prefix}min_altitude",
             f"must be finite and >= 0, got {self.min_altitude}",
+        )
+        require(
+            math.isfinite(self.max_altitude) and (self.max_altitude == 0 or self.max_altitude > self.min_altitude),
+            f"{prefix}max_altitude",
+            f"must be 0 (off) or finite and > min_altitude ({self.min_altitude}), got {self.max_altitude}",
         )
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
@@ -196,7 +208,7 @@ class ShieldOutput:
     status: np.ndarray
     """(N,) int: one of STATUS_* (inactive, solved, relaxed, fallback)."""
     num_constraints: np.ndarray
-    """(N,) int: obstacle constraints in the QP (the ground row, when on, is not counted)."""
+    """(N,) int: obstacle constraints in the QP (the ground and ceiling rows, when on, are not counted)."""
     slack: np.ndarray
     """(N,) float: relaxation slack used (0 unless relaxed)."""
     solve_us: np.ndarray
@@ -460,12 +472,18 @@ class HOCBFShield:
             if self.cfg.memory_steps > 0:
                 self._remember(vid, self._o_buf[: len(r_sel)])
             ncon[i] = len(b_vec)
+            n_planes = int(self.cfg.min_altitude > 0) + int(self.cfg.max_altitude > 0)
             violated = len(b_vec) > 0 and self._min_buf[0] < 0.0  # smallest margin A a_raw - b < 0
             if self.cfg.min_altitude > 0:
                 b_g = ground_row(p_i[2], v_i[2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.min_altitude)
                 a_mat = np.vstack((a_mat, _E3))
                 b_vec = np.append(b_vec, b_g)
                 violated = violated or self._a_buf[2] < b_g
+            if self.cfg.max_altitude > 0:
+                b_c = ceiling_row(p_i[2], v_i[2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.max_altitude)
+                a_mat = np.vstack((a_mat, _NEG_E3))
+                b_vec = np.append(b_vec, b_c)
+                violated = violated or -self._a_buf[2] < b_c
             if violated:
                 a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, v_i)
                 for _ in range(self.cfg.active_set_iterations if status[i] == STATUS_SOLVED else 0):
@@ -476,7 +494,7 @@ class HOCBFShield:
                     b_vec = np.append(b_vec, self._row_buf[3])
                     a_star, status[i], slack[i], us = self.solve(a_raw[i], a_mat, b_vec, v_i)
                     solve_us[i] += us
-                    ncon[i] = len(b_vec) - (self.cfg.min_altitude > 0)
+                    ncon[i] = len(b_vec) - n_planes
                     if status[i] != STATUS_SOLVED:
                         break
                 a_safe[i] = a_star

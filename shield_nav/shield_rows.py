@@ -78,6 +78,11 @@ def ground_row(z: float, v_z: float, alpha0: float, alpha1: float, min_altitude:
     return -alpha1 * v_z - alpha0 * (z - min_altitude)
 
 
+def ceiling_row(z: float, v_z: float, alpha0: float, alpha1: float, max_altitude: float) -> float:
+    """Right-hand side b of the ceiling row -a_z >= b: B = max_altitude - z, Bdot = -v_z, Bddot = -a_z."""
+    return alpha1 * v_z - alpha0 * (max_altitude - z)
+
+
 def hocbf_rows(
     r: np.ndarray, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ from shield_nav.shield import (
     ShieldConfig,
     accel_from_command,
     command_from_accel,
+    ceiling_row,
     ground_row,
     hocbf_rows,
 )
@@ -302,6 +303,53 @@ def test_ground_row_joins_the_obstacle_rows():
     assert np.all(a_mat @ out.accel_safe[0] >= b_vec - 1e-6)
     plain = HOCBFShield(ShieldConfig(**P4)).filter(cmd, pos, vel, points_w=[bar])
     assert plain.accel_safe[0, 2] < b_g  # without the row the correction goes down, into the ground
+
+
+def test_ceiling_row_hand_computed_and_projection():
+    # Climbing at 1 m/s, 2.7 m high, max_altitude 3.0, alpha0 16, alpha1 8: b = 8 (1) - 16 (0.3) = 3.2, i.e.
+    # the row -a_z >= 3.2 caps the vertical acceleration at a_z <= -3.2.
+    assert ceiling_row(2.7, 1.0, 16.0, 8.0, 3.0) == pytest.approx(3.2)
+    cmd = np.array([[G, 0.0, 0.0, 0.3]])  # a_raw = 0 (hover thrust, level), yaw 0.3
+    pos, vel = np.array([[4.0, 1.0, 2.7]]), np.array([[3.0, 0.0, 1.0]])
+    nothing = [np.zeros((0, 3))]
+    off = HOCBFShield(ShieldConfig(**P4)).filter(cmd, pos, vel, points_w=nothing)
+    assert not off.active[0] and np.array_equal(off.command, cmd)
+    on = HOCBFShield(ShieldConfig(**P4, max_altitude=3.0)).filter(cmd, pos, vel, points_w=nothing)
+    # The projection of a_raw = 0 onto a_z <= -3.2 is (0, 0, -3.2): thrust G - 3.2, level attitude.
+    assert on.active[0] and on.status[0] == STATUS_SOLVED and on.num_constraints[0] == 0
+    np.testing.assert_allclose(on.accel_safe[0], [0.0, 0.0, -3.2], atol=1e-6)
+    np.testing.assert_allclose(on.command[0], [G - 3.2, 0.0, 0.0, 0.3], atol=1e-6)
+    # Level flight at 1.5 m: b = -16 (1.5) = -24 <= 0 = -a_z, inactive, the command is returned bit for bit.
+    level = HOCBFShield(ShieldConfig(**P4, max_altitude=3.0)).filter(
+        cmd, np.array([[4.0, 1.0, 1.5]]), np.array([[5.0, 0.0, 0.0]]), points_w=nothing
+    )
+    assert not level.active[0] and np.array_equal(level.command, cmd)
+
+
+def test_ceiling_row_keeps_the_obstacle_correction_below_the_geofence():
+    # A bar 2 m ahead, 0.45 m below a vehicle climbing at 1 m/s: the obstacle rows alone lift it over the bar
+    # (a_z > 0); with the ceiling at 3.0 m (b = 8 (1) - 16 (0.45) = 0.8) the solution keeps a_z <= -0.8 and still
+    # satisfies every obstacle row (it brakes instead).
+    pos, vel = np.array([[0.0, 0.0, 2.55]]), np.array([[5.0, 0.0, 1.0]])
+    bar = np.array([[2.0, y, 2.1] for y in np.arange(-2.0, 2.01, 0.1)])
+    cmd = np.array([[G, 0.0, 0.0, 0.0]])
+    plain = HOCBFShield(ShieldConfig(**P4)).filter(cmd, pos, vel, points_w=[bar])
+    assert plain.active[0] and plain.accel_safe[0, 2] > 0.0
+    shield = HOCBFShield(ShieldConfig(**P4, max_altitude=3.0))
+    out = shield.filter(cmd, pos, vel, points_w=[bar])
+    _, a_mat, b_vec = shield.constraints(bar, pos[0], vel[0], np.zeros(3))
+    assert out.active[0] and out.status[0] == STATUS_SOLVED and len(b_vec) > 0
+    assert out.accel_safe[0, 2] <= -0.8 + 1e-6
+    assert np.all(a_mat @ out.accel_safe[0] >= b_vec - 1e-6)
+    assert out.accel_safe[0, 0] < plain.accel_safe[0, 0]  # harder braking replaces the climb
+
+
+def test_altitude_band_config_is_checked():
+    with pytest.raises(ConfigError, match="max_altitude"):
+        load_config(ShieldConfig, overrides=["min_altitude=0.5", "max_altitude=0.4"])
+    with pytest.raises(ConfigError, match="max_altitude"):
+        load_config(ShieldConfig, overrides=["max_altitude=-1"])
+    assert load_config(ShieldConfig, overrides=["min_altitude=0.35", "max_altitude=3.0"]).max_altitude == 3.0
 
 
 def _all_margins(pts, p, v, a, cfg):

@@ -65,6 +65,8 @@ STATUS_FALLBACK = 3
 STATUS_NAMES = {0: "inactive", 1: "solved", 2: "relaxed", 3: "fallback"}
 _E3 = np.array([[0.0, 0.0, 1.0]])
 _NEG_E3 = -_E3
+_NO_ROWS, _NO_RHS = np.zeros((0, 3)), np.zeros(0)
+_PLANE_EPS = 1.0e-3  # [m/s^2] an altitude row's right-hand side stays this far inside the actuator range
 _ZERO3 = np.zeros(3)
 
 
@@ -260,6 +262,9 @@ class HOCBFShield:
         self._g_act = np.array(rows)
         self._h_act = np.array(rhs)
         self.thrust_cap_scale = math.cos(delta)
+        # Vertical acceleration range with a level attitude (inside the polytope above).
+        self._az_min = cfg.thrust_range[0] - cfg.gravity
+        self._az_max = cfg.thrust_range[1] * math.cos(delta) - cfg.gravity
         """Fraction of f_max reachable in the worst direction under the inscribed thrust facets."""
         self._sparse = cfg.solver in ("osqp", "scs", "clarabel")
         # OSQP's defaults (eps 1e-3) leave ~5e-3 m/s^2 errors; tighten them and polish to active-set accuracy.
@@ -335,30 +340,63 @@ class HOCBFShield:
             c.r_safe, c.point_filter[0], c.point_filter[1], c.z_window[0], c.z_window[1], self._row_buf,
         )  # fmt: skip
 
+    def _plane_rows(self, z: float, v_z: float) -> tuple[np.ndarray, np.ndarray]:
+        """The altitude rows (ground, ceiling) that are on, as (A (k, 3), b (k,)) with A a >= b.
+
+        A right-hand side beyond what the actuators can give (a climb too fast to stop under the ceiling with
+        minimum thrust, a descent too fast to stop above the ground with maximum thrust) is capped at the largest
+        achievable value: the row then asks for the hardest vertical braking there is, and stays feasible.
+        """
+        c = self.cfg
+        rows, rhs = [], []
+        if c.min_altitude > 0:
+            rows.append(_E3[0])
+            rhs.append(min(ground_row(z, v_z, c.alpha0, c.alpha1, c.min_altitude), self._az_max - _PLANE_EPS))
+        if c.max_altitude > 0:
+            rows.append(_NEG_E3[0])
+            rhs.append(min(ceiling_row(z, v_z, c.alpha0, c.alpha1, c.max_altitude), -self._az_min - _PLANE_EPS))
+        if not rows:
+            return _NO_ROWS, _NO_RHS
+        return np.array(rows), np.array(rhs)
+
     def solve(
-        self, accel_raw: np.ndarray, a_mat: np.ndarray, b_vec: np.ndarray, vel_w: np.ndarray
+        self,
+        accel_raw: np.ndarray,
+        a_mat: np.ndarray,
+        b_vec: np.ndarray,
+        vel_w: np.ndarray,
+        plane_mat: np.ndarray | None = None,
+        plane_vec: np.ndarray | None = None,
     ) -> tuple[np.ndarray, int, float, float]:
         """Project accel_raw (3,) onto {A a >= b} intersected with the actuator polytope.
 
-        Returns (a*, status, slack, solver_us). ``status`` is STATUS_SOLVED, STATUS_RELAXED or STATUS_FALLBACK.
+        ``plane_mat``/``plane_vec`` are the altitude rows (ground, ceiling) in the same form; they stay hard when
+        the obstacle rows are relaxed (their right-hand sides are within the actuator range, so they never make
+        the relaxed problem infeasible). Returns (a*, status, slack, solver_us). ``status`` is STATUS_SOLVED,
+        STATUS_RELAXED or STATUS_FALLBACK.
         """
         c = self.cfg
-        g_mat = np.vstack((-a_mat, self._g_act))
-        h_vec = np.concatenate((-b_vec, self._h_act))
+        if plane_mat is None or plane_vec is None:
+            plane_mat, plane_vec = np.zeros((0, 3)), np.zeros(0)
+        hard_g = np.vstack((-plane_mat, self._g_act))
+        hard_h = np.concatenate((-plane_vec, self._h_act))
+        g_mat = np.vstack((-a_mat, hard_g))
+        h_vec = np.concatenate((-b_vec, hard_h))
         t0 = time.perf_counter()
         x = self._qp(np.eye(3), -accel_raw, g_mat, h_vec)
         if x is not None and np.all(np.isfinite(x)):
             return x, STATUS_SOLVED, 0.0, 1e6 * (time.perf_counter() - t0)
-        # Relaxed: variables [a, s]; obstacle rows A a + s >= b, s >= 0; cost 1/2|a - a_raw|^2 + w/2 s^2.
+        # Relaxed: variables [a, s]; obstacle rows A a + s >= b, s >= 0; altitude rows and actuator limits hard;
+        # cost 1/2|a - a_raw|^2 + w/2 s^2.
         k = len(b_vec)
         p4 = np.diag([1.0, 1.0, 1.0, c.slack_weight])
         q4 = np.concatenate((-accel_raw, [0.0]))
-        g4 = np.zeros((k + len(self._h_act) + 1, 4))
+        g4 = np.zeros((k + len(hard_h) + 1, 4))
         g4[:k, :3] = -a_mat
         g4[:k, 3] = -1.0
-        g4[k : k + len(self._h_act), :3] = self._g_act
+        g4[k : k + len(hard_h), :3] = hard_g
         g4[-1, 3] = -1.0
-        h4 = np.concatenate((-b_vec, self._h_act, [0.0]))
+        h4 = np.concatenate((-b_vec, hard_h, [0.0]))
         x = self._qp(p4, q4, g4, h4)
         us = 1e6 * (time.perf_counter() - t0)
         if x is not None and np.all(np.isfinite(x)):
@@ -472,29 +510,21 @@ class HOCBFShield:
             if self.cfg.memory_steps > 0:
                 self._remember(vid, self._o_buf[: len(r_sel)])
             ncon[i] = len(b_vec)
-            n_planes = int(self.cfg.min_altitude > 0) + int(self.cfg.max_altitude > 0)
             violated = len(b_vec) > 0 and self._min_buf[0] < 0.0  # smallest margin A a_raw - b < 0
-            if self.cfg.min_altitude > 0:
-                b_g = ground_row(p_i[2], v_i[2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.min_altitude)
-                a_mat = np.vstack((a_mat, _E3))
-                b_vec = np.append(b_vec, b_g)
-                violated = violated or self._a_buf[2] < b_g
-            if self.cfg.max_altitude > 0:
-                b_c = ceiling_row(p_i[2], v_i[2], self.cfg.alpha0, self.cfg.alpha1, self.cfg.max_altitude)
-                a_mat = np.vstack((a_mat, _NEG_E3))
-                b_vec = np.append(b_vec, b_c)
-                violated = violated or -self._a_buf[2] < b_c
+            plane_mat, plane_vec = self._plane_rows(p_i[2], v_i[2])
+            if len(plane_vec):
+                violated = violated or bool(np.any(plane_mat @ self._a_buf < plane_vec))
             if violated:
-                a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, v_i)
+                a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, v_i, plane_mat, plane_vec)
                 for _ in range(self.cfg.active_set_iterations if status[i] == STATUS_SOLVED else 0):
                     # Check every point at a*; add the most violated row if any is broken, and re-solve.
                     if self.min_margin(pts, p_i, v_i, a_star, lagged) >= -self.cfg.active_set_tol:
                         break
                     a_mat = np.vstack((a_mat, 2.0 * self._row_buf[None, :3]))
                     b_vec = np.append(b_vec, self._row_buf[3])
-                    a_star, status[i], slack[i], us = self.solve(a_raw[i], a_mat, b_vec, v_i)
+                    a_star, status[i], slack[i], us = self.solve(a_raw[i], a_mat, b_vec, v_i, plane_mat, plane_vec)
                     solve_us[i] += us
-                    ncon[i] = len(b_vec) - n_planes
+                    ncon[i] = len(b_vec)
                     if status[i] != STATUS_SOLVED:
                         break
                 a_safe[i] = a_star

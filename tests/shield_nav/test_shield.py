@@ -344,6 +344,40 @@ def test_ceiling_row_keeps_the_obstacle_correction_below_the_geofence():
     assert out.accel_safe[0, 0] < plain.accel_safe[0, 0]  # harder braking replaces the climb
 
 
+def test_altitude_rows_stay_hard_when_the_obstacle_rows_are_relaxed():
+    # One obstacle row -a_x + a_z >= 40 that the tilt and thrust limits cannot meet: the relaxed QP buys it back
+    # with all the thrust it has, half of it upward (a_z > 0). Given the ceiling row -a_z >= 2 it keeps a_z = -2
+    # exactly (hard, not traded against the slack) and pays with a larger slack.
+    shield = HOCBFShield(ShieldConfig(**P4))
+    a_mat, b_vec = np.array([[-1.0, 0.0, 1.0]]), np.array([40.0])
+    free, status, slack_free, _ = shield.solve(np.zeros(3), a_mat, b_vec, np.zeros(3))
+    assert status == STATUS_RELAXED and free[2] > 5.0
+    capped, status, slack_capped, _ = shield.solve(
+        np.zeros(3), a_mat, b_vec, np.zeros(3), np.array([[0.0, 0.0, -1.0]]), np.array([2.0])
+    )
+    assert status == STATUS_RELAXED and capped[2] == pytest.approx(-2.0, abs=1e-6)
+    assert slack_capped > slack_free
+
+
+def test_altitude_rows_are_capped_at_what_the_actuators_can_give():
+    # Climbing at 3 m/s, 0.1 m under the ceiling: b = 8 (3) - 16 (0.1) = 22.4, i.e. a_z <= -22.4, beyond the
+    # -8.81 m/s^2 that the minimum thrust (1 m/s^2) gives. The row is capped to a_z <= -8.81 + 0.001 and the QP
+    # solves exactly: level attitude, thrust 1.001.
+    shield = HOCBFShield(ShieldConfig(**P4, max_altitude=3.0))
+    out = shield.filter(np.array([[G, 0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 2.9]]), np.array([[3.0, 0.0, 3.0]]),
+                        points_w=[np.zeros((0, 3))])  # fmt: skip
+    assert out.status[0] == STATUS_SOLVED
+    np.testing.assert_allclose(out.accel_safe[0], [0.0, 0.0, 1.0 - G + 1e-3], atol=1e-6)
+    np.testing.assert_allclose(out.command[0, :3], [1.001, 0.0, 0.0], atol=1e-6)
+    # Descending at 6 m/s, 0.1 m above the ground row: b = 8 (6) - 16 (0.1) = 46.4 > what 30 m/s^2 of thrust
+    # gives; the row asks for the most the level thrust cap allows, which the QP gives.
+    low = HOCBFShield(ShieldConfig(**P4, min_altitude=0.35))
+    out = low.filter(np.array([[G, 0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.45]]), np.array([[0.0, 0.0, -6.0]]),
+                     points_w=[np.zeros((0, 3))])  # fmt: skip
+    assert out.status[0] == STATUS_SOLVED
+    assert out.accel_safe[0, 2] == pytest.approx(30.0 * low.thrust_cap_scale - G - 1e-3, abs=1e-6)
+
+
 def test_altitude_band_config_is_checked():
     with pytest.raises(ConfigError, match="max_altitude"):
         load_config(ShieldConfig, overrides=["min_altitude=0.5", "max_altitude=0.4"])

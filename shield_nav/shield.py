@@ -32,8 +32,8 @@ from shield_nav.shield_rows import (
     _min_margin,
     _select,
     accel_from_command,
-    command_from_accel,
     ceiling_row,
+    command_from_accel,
     ground_row,
     hocbf_rows,
 )

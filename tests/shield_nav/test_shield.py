@@ -17,8 +17,8 @@ from shield_nav.shield import (
     HOCBFShield,
     ShieldConfig,
     accel_from_command,
-    command_from_accel,
     ceiling_row,
+    command_from_accel,
     ground_row,
     hocbf_rows,
 )

@@ -48,8 +48,8 @@ __all__ = [
     "ShieldConfig",
     "ShieldOutput",
     "accel_from_command",
-    "command_from_accel",
     "ceiling_row",
+    "command_from_accel",
     "ground_row",
     "hocbf_rows",
 ]
@@ -145,7 +145,7 @@ class ShieldConfig:
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
-    lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Altitude band")."""
+    lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Ceiling row")."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
@@ -262,10 +262,10 @@ class HOCBFShield:
         self._g_act = np.array(rows)
         self._h_act = np.array(rhs)
         self.thrust_cap_scale = math.cos(delta)
+        """Fraction of f_max reachable in the worst direction under the inscribed thrust facets."""
         # Vertical acceleration range with a level attitude (inside the polytope above).
         self._az_min = cfg.thrust_range[0] - cfg.gravity
         self._az_max = cfg.thrust_range[1] * math.cos(delta) - cfg.gravity
-        """Fraction of f_max reachable in the worst direction under the inscribed thrust facets."""
         self._sparse = cfg.solver in ("osqp", "scs", "clarabel")
         # OSQP's defaults (eps 1e-3) leave ~5e-3 m/s^2 errors; tighten them and polish to active-set accuracy.
         osqp_opts = {"eps_abs": 1e-7, "eps_rel": 1e-7, "polishing": True, "raise_error": False}
@@ -376,10 +376,11 @@ class HOCBFShield:
         STATUS_RELAXED or STATUS_FALLBACK.
         """
         c = self.cfg
-        if plane_mat is None or plane_vec is None:
-            plane_mat, plane_vec = np.zeros((0, 3)), np.zeros(0)
-        hard_g = np.vstack((-plane_mat, self._g_act))
-        hard_h = np.concatenate((-plane_vec, self._h_act))
+        if plane_vec is None or len(plane_vec) == 0:
+            hard_g, hard_h = self._g_act, self._h_act  # the default: no altitude rows, nothing to stack
+        else:
+            hard_g = np.vstack((-plane_mat, self._g_act))
+            hard_h = np.concatenate((-plane_vec, self._h_act))
         g_mat = np.vstack((-a_mat, hard_g))
         h_vec = np.concatenate((-b_vec, hard_h))
         t0 = time.perf_counter()

@@ -118,24 +118,47 @@ def _rhs(rx: float, ry: float, rz: float, v: np.ndarray, alpha0: float, alpha1: 
     )
 
 
-@nb.njit(cache=True, nogil=True)
-def _tighter_margin(
-    o: np.ndarray, rx: float, ry: float, rz: float, v: np.ndarray, p_lag: np.ndarray, v_lag: np.ndarray,
-    use_lag: bool, a: np.ndarray, alpha0: float, alpha1: float, r_safe: float,
-) -> tuple[float, bool]:  # fmt: skip
-    """Margin of point o at ``a`` (r = p - o given) and whether its row at the lagged state is the tighter one.
+@nb.njit(cache=True, nogil=True, inline="always")
+def _margin_s(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, ax: float, ay: float, az: float,
+              vv2: float, alpha0: float, alpha1: float, rs2: float) -> float:  # fmt: skip
+    """``_margin`` on scalars, with vv2 = 2|v|^2 and rs2 = r_safe^2 given (the same operations in the same order)."""
+    return (
+        2.0 * (rx * ax + ry * ay + rz * az)
+        + vv2
+        + alpha1 * 2.0 * (rx * vx + ry * vy + rz * vz)
+        + alpha0 * (rx * rx + ry * ry + rz * rz - rs2)
+    )
 
-    With ``use_lag`` the row at (p_lag, v_lag) competes unless that prediction has passed the point
-    ((p_lag - o).(p - o) <= 0, where its row would push towards it).
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _tighter_margin(ox: float, oy: float, oz: float, rx: float, ry: float, rz: float, k: tuple,
+                    use_lag: bool, alpha0: float, alpha1: float) -> tuple[float, bool]:  # fmt: skip
+    """Margin of point o = (ox, oy, oz) (r = p - o given) and whether its row at the lagged state is the tighter one.
+
+    ``k`` holds the per-call constants unpacked by ``_consts``. With ``use_lag`` the row at (p_lag, v_lag) competes
+    unless that prediction has passed the point ((p_lag - o).(p - o) <= 0, where its row would push towards it).
+    Scalars and an inlined body: a per-point call that passes arrays costs their reference counts, several times
+    the arithmetic.
     """
-    m = _margin(rx, ry, rz, v, a, alpha0, alpha1, r_safe)
+    m = _margin_s(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
     if use_lag:
-        qx, qy, qz = p_lag[0] - o[0], p_lag[1] - o[1], p_lag[2] - o[2]
+        qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
         if qx * rx + qy * ry + qz * rz > 0.0:
-            m_lag = _margin(qx, qy, qz, v_lag, a, alpha0, alpha1, r_safe)
+            m_lag = _margin_s(qx, qy, qz, k[9], k[10], k[11], k[6], k[7], k[8], k[13], alpha0, alpha1, k[14])
             if m_lag < m:
                 return m_lag, True
     return m, False
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, r_safe: float) -> tuple:
+    """The per-call constants of ``_tighter_margin`` as a tuple (a value: passing it per point costs nothing).
+
+    v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2.
+    """
+    return (v[0], v[1], v[2], p_lag[0], p_lag[1], p_lag[2], a[0], a[1], a[2], v_lag[0], v_lag[1], v_lag[2],
+            2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
+            2.0 * (v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), r_safe * r_safe)  # fmt: skip
 
 
 @nb.njit(cache=True, nogil=True)
@@ -165,6 +188,7 @@ def _min_margin(
     best = np.inf
     best_i = -1
     best_lag = False
+    k = _consts(v, p_lag, a, v_lag, r_safe)
     for i in range(points.shape[0]):
         rx = p[0] - points[i, 0]
         ry = p[1] - points[i, 1]
@@ -172,7 +196,7 @@ def _min_margin(
         d2 = rx * rx + ry * ry + rz * rz
         if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
-        m, lagged = _tighter_margin(points[i], rx, ry, rz, v, p_lag, v_lag, use_lag, a, alpha0, alpha1, r_safe)
+        m, lagged = _tighter_margin(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, k, use_lag, alpha0, alpha1)
         if m < best:
             best, best_i, best_lag = m, i, lagged
     if best_i >= 0:
@@ -224,6 +248,7 @@ def _select(
     best_i = np.full(n_sec, -1)
     best_lag = np.zeros(n_sec, dtype=np.bool_)
     two_pi = 2.0 * math.pi
+    k = _consts(v, p_lag, a_raw, v_lag, r_safe)
     for i in range(points.shape[0]):
         rx = p[0] - points[i, 0]
         ry = p[1] - points[i, 1]
@@ -231,7 +256,7 @@ def _select(
         d2 = rx * rx + ry * ry + rz * rz
         if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
-        m, lagged = _tighter_margin(points[i], rx, ry, rz, v, p_lag, v_lag, use_lag, a_raw, alpha0, alpha1, r_safe)
+        m, lagged = _tighter_margin(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, k, use_lag, alpha0, alpha1)
         d = math.sqrt(d2)
         az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
         el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]

@@ -7,7 +7,10 @@ Every control step, for every env at once (numpy over envs, a short loop over pa
    clearance). Each step follows ``u = -grad Phi / |grad Phi|`` (central differences of step ``fd_step``), bent away
    from obstacles by ``clearance_gain * max(d_pref - d, 0) / d_pref`` times the part of ``grad d`` (ESDF gradient)
    normal to ``u``, so where there is room the path keeps ``d_pref`` of clearance. Within ``goal_switch`` of the
-   goal (by Phi) the step goes straight at the goal point.
+   goal (by Phi) the step goes straight at the goal point. Where the inflation closes every way to the goal (its Phi
+   is flat at the vehicle), the path descends the *narrow field* instead: the env's own traversable space (vehicle
+   radius), with a Dijkstra that weighs low clearance (``narrow_clearance``, ``narrow_weight``), so it keeps to the
+   middle of narrow corridors.
 2. **Speed profile.** The curvature at sample ``k`` is the turning angle between the tangents ``curv_window``
    samples before and after it, over that arc length (a kink the vehicle cannot follow anyway is spread over the
    window). The speed cap there is ``min(v_target, sqrt(lat_accel / kappa), clear_gain * (d - r_vehicle))``;
@@ -46,7 +49,16 @@ class ExpertConfig:
     """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""
     flat_slope: float = 0.3
     """Below this largest |dPhi/dx| at the vehicle the inflated field is taken as flat (the inflation closes the way
-    to the goal) and the env's own field is descended instead."""
+    to the goal) and the narrow field is descended instead."""
+    narrow_clearance: float = 0.6
+    """The narrow field (descended where the inflated one is flat, e.g. in a maze of corridors narrower than twice
+    ``field_radius``): the geodesic field of the env's own traversable space (the vehicle radius) whose Dijkstra
+    weighs each metre by ``1 + narrow_weight * max(0, narrow_clearance - d) / narrow_clearance`` (``d`` the ESDF),
+    so its paths keep to the middle of narrow corridors instead of grazing their walls [m] (0: the env's own field,
+    unweighted)."""
+    narrow_weight: float = 4.0
+    """Weight of that clearance cost."""
+
     horizon: float = 14.0
     """Length of the traced path [m] (longer than the braking distance at the highest speed)."""
     ds: float = 0.35
@@ -115,7 +127,8 @@ class ExpertConfig:
                      "flat_slope", "ff_window"):
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
-                     "lookahead_s", "ff_gain", "momentum", "smooth_slack"):  # fmt: skip
+                     "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
+                     "narrow_weight"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -226,39 +239,49 @@ class PlannerController:
         self._own: tuple | None = None
         self.last: dict[str, np.ndarray] = {}
         self.fallback = np.zeros(0, dtype=bool)
-        """(N,) bool of the last trace: envs that descended the env's own field (the inflated one was flat)."""
+        """(N,) bool of the last trace: envs that descended the narrow field (the inflated one was flat)."""
 
     def reset(self, env: Any) -> None:
         """Nothing to reset (stateless); the planning fields are built on first use and kept per env."""
 
     # ------------------------------------------------------------------------------------------------ fields
-    def _fields(self, env: Any) -> tuple[Any, Any]:
-        """(FieldStack, GoalAnchorFields or None) with obstacles inflated by ``field_radius``, built once per env."""
+    def _fields(self, env: Any) -> tuple[Any, Any, Any]:
+        """The planning fields of ``env``, built once per env (lazily, for the scenes and goals flown).
+
+        (FieldStack, GoalAnchorFields or None) with obstacles inflated by ``field_radius``, and the narrow field's
+        GoalAnchorFields (None: the env's own).
+        """
         if self._own is not None and self._own[0] is env:
-            return self._own[1], self._own[2]
+            return self._own[1], self._own[2], self._own[3]
         from envs.fields import scene_field_stack
         from envs.fields.anchors import GoalAnchorFields
 
-        radius = self.ec.field_radius
-        if abs(radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9:
+        ec = self.ec
+        k = env.anchor_fields.count if env.anchor_fields is not None else 0
+        if abs(ec.field_radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9:
             stack, anchors = env.field_stack, env.anchor_fields
-        else:  # lazy, like the env's: built for the scenes and goals flown
-            stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, radius)
-            k = env.anchor_fields.count if env.anchor_fields is not None else 0
+        else:
+            stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, ec.field_radius)
             anchors = GoalAnchorFields(env.scenes, stack, k, lazy=True) if k > 0 else None
-        self._own = (env, stack, anchors)
-        return stack, anchors
+        narrow = None
+        if ec.narrow_clearance > 0 and k > 0:
+            narrow = GoalAnchorFields(env.scenes, env.field_stack, k, lazy=True,
+                                      clearance_cost=(ec.narrow_clearance, ec.narrow_weight))  # fmt: skip
+        self._own = (env, stack, anchors, narrow)
+        return stack, anchors, narrow
 
     def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray, own: bool = True) -> np.ndarray:
-        """Phi at ``pts`` of the inflated fields (``own``) or of the env's (inflated by the vehicle radius only)."""
-        stack, anchors = self._fields(env) if own else (env.field_stack, env.anchor_fields)
+        """Phi at ``pts`` of the inflated fields (``own``) or of the narrow field (the env's traversable space)."""
+        stack, anchors, narrow = self._fields(env)
+        if not own:
+            stack, anchors = env.field_stack, (narrow if narrow is not None else env.anchor_fields)
         if anchors is not None:
             return anchors.geodesic(ids, anchor, pts)
         return stack.geodesic(ids, pts)
 
     def _phi7(self, env: Any, fallback: np.ndarray, ids7: np.ndarray, anchor7: np.ndarray,
               pts: np.ndarray) -> np.ndarray:  # fmt: skip
-        """Phi at 7 points per env (N*7, 3) -> (N, 7), from the env's own fields where ``fallback`` (N,) is set."""
+        """Phi at 7 points per env (N*7, 3) -> (N, 7), from the narrow field where ``fallback`` (N,) is set."""
         n = len(fallback)
         if not fallback.any():
             return self._phi(env, ids7, anchor7, pts).reshape(n, 7)
@@ -285,7 +308,7 @@ class PlannerController:
         x = env.local_pos.astype(np.float64).copy()
         prev: np.ndarray | None = None
         # Where the inflation closes every way to the goal, the inflated Phi is flat (capped at its unreachable
-        # value): those envs descend the env's own field instead, which keeps only the vehicle radius.
+        # value): those envs descend the narrow field instead (the vehicle radius, clearance-weighted).
         pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
         phi0 = self._phi(env, ids6, anchor6, pts).reshape(n, 7)
         slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
@@ -329,8 +352,11 @@ class PlannerController:
         smooth = (cum[:, k + w + 1] - cum[:, k - w]) / (2 * w + 1)[None, :, None]
         ids = np.repeat(env.scene_id_buf, kp1)
         d = env.field_stack.esdf(ids, smooth.reshape(-1, 3)).reshape(n, kp1)
-        radius = np.where(self.fallback, env.cfg.vehicle.airframe.collision_radius, ec.field_radius)
-        keep = d >= (radius - ec.smooth_slack)[:, None]
+        # Inflated paths may give up smooth_slack of their inflation; narrow-field paths keep smooth_slack above the
+        # vehicle radius (they start at it).
+        r_vehicle = env.cfg.vehicle.airframe.collision_radius
+        floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.field_radius - ec.smooth_slack)
+        keep = d >= floor[:, None]
         return np.where(keep[..., None], smooth, path), np.where(keep, d, clear)
 
     def plan(self, env: Any) -> dict[str, np.ndarray]:

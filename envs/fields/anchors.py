@@ -51,9 +51,13 @@ class GoalAnchorFields:
         half_size: Half extent (m) in y and z of the small box of goal nodes around each anchor.
         lazy: Build (or read from the cache) an anchor's field on the first lookup that needs it, and a scene's
             anchor validity on the first draw in that scene; otherwise everything is built now.
+        clearance_cost: ``(d_ref, weight)``, or None: the Dijkstra then weighs each metre by
+            ``1 + weight * max(0, d_ref - d) / d_ref`` (``d`` the ESDF, mean of an edge's end nodes), so shortest
+            paths keep to the middle of corridors narrower than ``2 d_ref`` and Phi is a weighted length, not metres.
 
     Raises:
-        ValueError: ``count < 1``, or a scene whose every anchor is blocked (when that scene is first used).
+        ValueError: ``count < 1``, a bad ``clearance_cost``, or a scene whose every anchor is blocked (when that
+            scene is first used).
     """
 
     def __init__(
@@ -65,9 +69,14 @@ class GoalAnchorFields:
         cache_dir: str | os.PathLike | None = None,
         half_size: float = 0.5,
         lazy: bool = False,
+        clearance_cost: tuple[float, float] | None = None,
     ) -> None:
         if count < 1:
             raise ValueError(f"anchor count must be >= 1, got {count}")
+        if clearance_cost is not None and not (len(clearance_cost) == 2 and clearance_cost[0] > 0
+                                               and clearance_cost[1] >= 0):  # fmt: skip
+            raise ValueError(f"clearance_cost must be (d_ref > 0, weight >= 0), got {clearance_cost}")
+        self.clearance_cost = None if clearance_cost is None else (float(clearance_cost[0]), float(clearance_cost[1]))
         self.count = count
         self.scenes = list(scenes)
         self.num_scenes = len(self.scenes)
@@ -94,7 +103,8 @@ class GoalAnchorFields:
     # ------------------------------------------------------------------------------------------------ lazy build
     def _key(self, s: int) -> str:
         f = self.stack.scene_fields(s)
-        return cache_key(self.scenes[s], f.res, f.vehicle_radius, self._stencil)
+        key = cache_key(self.scenes[s], f.res, f.vehicle_radius, self._stencil)
+        return key if self.clearance_cost is None else f"{key}|clearance_cost{list(self.clearance_cost)}"
 
     def _ensure_valid(self, scene_ids: np.ndarray) -> None:
         """Anchor validity (some goal node of its box is traversable) of every scene in ``scene_ids``."""
@@ -140,7 +150,11 @@ class GoalAnchorFields:
             if not self.valid[s, k]:
                 return s, k, np.zeros(f.shape, np.float32)
             diag = float(np.linalg.norm(np.subtract(self.scenes[s].bounds_hi, self.scenes[s].bounds_lo)))
-            return s, k, geodesic_field(trav, self._goal_mask(s, k), f.res, diag, self._stencil, fill)[0]
+            cost = None
+            if self.clearance_cost is not None:
+                d_ref, weight = self.clearance_cost
+                cost = 1.0 + weight * np.clip(d_ref - f.esdf, 0.0, d_ref) / d_ref
+            return s, k, geodesic_field(trav, self._goal_mask(s, k), f.res, diag, self._stencil, fill, cost)[0]
 
         workers = min(len(jobs), os.cpu_count() or 1)
         with ThreadPoolExecutor(workers) as pool:

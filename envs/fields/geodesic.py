@@ -119,8 +119,14 @@ def _dijkstra(
     inter: np.ndarray,
     n_inter: np.ndarray,
     dist: np.ndarray,
+    cost: np.ndarray,
 ) -> int:
-    """Multi-source Dijkstra on the implicit grid graph; fills ``dist`` (flat, inf = unreached). Returns pops."""
+    """Multi-source Dijkstra on the implicit grid graph; fills ``dist`` (flat, inf = unreached). Returns pops.
+
+    ``cost`` (flat, or empty for none): per-node cost factor; an edge then weighs its length times the mean of its
+    end nodes' factors.
+    """
+    weighted = cost.shape[0] > 0
     sy, sx = nz, ny * nz  # flat index = i * sx + j * sy + k
     cap = max(1024, 2 * sources.shape[0])
     keys = np.empty(cap, dtype=np.float64)
@@ -152,7 +158,7 @@ def _dijkstra(
             if a < 0 or a >= nx or b < 0 or b >= ny or c < 0 or c >= nz:
                 continue
             v = a * sx + b * sy + c
-            nd = d + lengths[e]
+            nd = d + lengths[e] * (0.5 * (cost[u] + cost[v])) if weighted else d + lengths[e]
             if nd >= dist[v] or not trav[v]:
                 continue
             ok = True
@@ -180,6 +186,7 @@ def geodesic_field(
     diag: float,
     stencil_kind: str = "extended",
     fill: tuple[np.ndarray, np.ndarray] | None = None,
+    cost: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Phi (nx, ny, nz) float32 in metres, its unreachable value, and the reachable mask.
 
@@ -191,9 +198,11 @@ def geodesic_field(
         stencil_kind: ``"26"`` or ``"extended"`` (see the module docstring).
         fill: ``nearest_traversable(traversable, res)`` when the caller already has it (it depends on
             ``traversable`` only, so several goals on one grid share it); computed here otherwise.
+        cost: Per-node cost factor >= 1 (nx, ny, nz), or None: an edge then weighs its length times the mean of
+            its end nodes' factors, so Phi is a weighted path length (>= the distance) rather than metres.
 
     Raises:
-        ValueError: If no goal node is traversable (goal region fully blocked).
+        ValueError: If no goal node is traversable (goal region fully blocked), or a bad ``cost``.
     """
     sources = np.flatnonzero((traversable & goal_mask).reshape(-1))
     if sources.size == 0:
@@ -202,7 +211,13 @@ def geodesic_field(
     nx, ny, nz = traversable.shape
     trav_flat = np.ascontiguousarray(traversable.reshape(-1))
     dist = np.full(trav_flat.shape[0], np.inf)
-    _dijkstra(trav_flat, nx, ny, nz, sources.astype(np.int64), offsets, lengths, inter, n_inter, dist)
+    if cost is None:
+        cost_flat = np.zeros(0)
+    else:
+        cost_flat = np.ascontiguousarray(cost, dtype=np.float64).reshape(-1)
+        if cost_flat.shape != trav_flat.shape or not np.isfinite(cost_flat).all() or (cost_flat < 1.0).any():
+            raise ValueError(f"cost must be a finite array >= 1 of the grid's shape {traversable.shape}")
+    _dijkstra(trav_flat, nx, ny, nz, sources.astype(np.int64), offsets, lengths, inter, n_inter, dist, cost_flat)
     dist = dist.reshape(traversable.shape) * res
     reachable = np.isfinite(dist)
     phi_unreachable = float(dist[reachable].max()) + float(diag)

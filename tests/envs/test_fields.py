@@ -226,3 +226,58 @@ def test_goal_anchor_fields_lead_to_their_own_anchor():
     assert anchors.geodesic(ids[:1], [0], q)[0] < phi[0]
     assert anchors.geodesic(ids[:1], [2], q)[0] > anchors.geodesic(ids[:1], [2], p[:1])[0]
     np.testing.assert_array_equal(anchors.nearest(ids[:1], np.array([[63.5, 13.0, 1.0]])), [2])
+
+
+def test_weighted_geodesic_by_hand():
+    """A 1-D corridor of 5 nodes (res 0.5 m), goal at node 0: unit costs give the distances; costs c give edge
+    weights len * (c_u + c_v) / 2, summed by hand; bad costs are refused."""
+    from envs.fields.geodesic import geodesic_field
+
+    trav = np.ones((5, 1, 1), dtype=bool)
+    goal = np.zeros_like(trav)
+    goal[0] = True
+    phi, _, reach = geodesic_field(trav, goal, 0.5, 10.0, "26")
+    np.testing.assert_allclose(phi[:, 0, 0], [0.0, 0.5, 1.0, 1.5, 2.0])
+    cost = np.array([1.0, 3.0, 1.0, 1.0, 5.0]).reshape(5, 1, 1)
+    phi_w, _, _ = geodesic_field(trav, goal, 0.5, 10.0, "26", cost=cost)
+    # edges: 0-1 0.5 * 2 = 1.0; 1-2 0.5 * 2 = 1.0; 2-3 0.5 * 1 = 0.5; 3-4 0.5 * 3 = 1.5
+    np.testing.assert_allclose(phi_w[:, 0, 0], [0.0, 1.0, 2.0, 2.5, 4.0])
+    assert reach.all()
+    # Two routes round a wall: the costlier short one loses to the cheap long one.
+    trav = np.ones((3, 3, 1), dtype=bool)
+    trav[1, 1] = False  # centre blocked
+    goal = np.zeros_like(trav)
+    goal[2, 1] = True
+    cost = np.ones((3, 3, 1))
+    cost[:, 0] = 10.0  # the y = 0 side is expensive
+    # From (0, 1) every diagonal cuts the blocked centre's corner (not allowed), so both routes take 4 unit steps:
+    # round the cheap y = 2 side 4 x 1 = 4; round the y = 0 side 5.5 + 10 + 10 + 5.5 = 31.
+    phi_w, _, _ = geodesic_field(trav, goal, 1.0, 10.0, "26", cost=cost)
+    np.testing.assert_allclose(phi_w[0, 1, 0], 4.0, rtol=1e-6)
+    np.testing.assert_allclose(phi_w[0, 0, 0], 4.0 + 5.5, rtol=1e-6)  # step to (0, 1), then the cheap side
+    cost = cost[:, ::-1].copy()  # now the y = 2 side is the expensive one: the route flips, the value does not
+    phi_w, _, _ = geodesic_field(trav, goal, 1.0, 10.0, "26", cost=cost)
+    np.testing.assert_allclose(phi_w[0, 1, 0], 4.0, rtol=1e-6)
+    np.testing.assert_allclose(phi_w[0, 2, 0], 4.0 + 5.5, rtol=1e-6)
+    for bad in (np.zeros((3, 3, 1)), np.full((3, 3, 1), np.nan), np.ones((2, 2, 1))):
+        with pytest.raises(ValueError, match="cost"):
+            geodesic_field(trav, goal, 1.0, 10.0, "26", cost=bad)
+
+
+def test_clearance_cost_anchor_fields_are_keyed_apart_and_weigh_narrow_space(tmp_path):
+    from envs.fields.anchors import GoalAnchorFields
+
+    scene = Scene()
+    f = build_fields(scene, resolution=0.25, vehicle_radius=0.2, use_cache=False)
+    plain = GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path)
+    weighted = GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path, clearance_cost=(0.6, 4.0))
+    assert plain._file(0, 0) != weighted._file(0, 0)
+    ids, k = np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64)
+    # Mid-height, far from floor and ceiling (ESDF 1.5 m > 0.6 m): no cost, the same Phi.
+    p = np.array([[20.0, 0.0, 1.5], [20.0, 0.0, 0.3]])
+    a, b = plain.geodesic(ids, k, p), weighted.geodesic(ids, k, p)
+    assert abs(a[0] - b[0]) < 1e-6
+    # 0.3 m above the floor the path to the goal (which lies at mid-height) crosses costly nodes: Phi grows.
+    assert b[1] > a[1] + 0.1
+    with pytest.raises(ValueError, match="clearance_cost"):
+        GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path, clearance_cost=(0.0, 1.0))

@@ -63,7 +63,7 @@ def test_paths_descend_the_inflated_geodesic_field_and_keep_clearance():
     ok = np.isclose(path[:, k], avg).all(axis=1) | np.isclose(path[:, k], raw[:, k]).all(axis=1)
     assert ok.all()
     # Phi of the episode's anchor field, independently queried, falls along every path.
-    stack, anchors = ctrl._fields(env)
+    stack, anchors, _ = ctrl._fields(env)
     ids = np.repeat(env.scene_id_buf, path.shape[1])
     phi = anchors.geodesic(ids, np.repeat(env.anchor_buf, path.shape[1]), path.reshape(-1, 3)).reshape(8, -1)
     assert np.all(phi[:, -1] < phi[:, 0] - 0.8 * ec.horizon)
@@ -99,7 +99,8 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 
 
 @pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
-                                            ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0)])  # fmt: skip
+                                            ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0),
+                                            ("narrow_clearance", -0.1), ("narrow_weight", -1.0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})
@@ -107,7 +108,8 @@ def test_bad_expert_config_names_the_key(key, value):
 
 def test_flat_inflated_field_falls_back_to_the_envs_own_field():
     """Inflated so much that no way to the goal is left, the inflated Phi is flat (its unreachable cap): the expert
-    then descends the env's own field, and its path still makes progress on it."""
+    then descends the narrow field (the env's own traversable space, clearance-weighted), and its path still makes
+    progress on the env's field."""
     # Benchmark scene 14 (a maze of boxes): 0.5 m of inflation closes every corridor to the goal region.
     env = NavigationEnv(num_envs=4, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
                                        "curriculum.enabled": False})  # fmt: skip
@@ -119,6 +121,16 @@ def test_flat_inflated_field_falls_back_to_the_envs_own_field():
     ids = np.repeat(env.scene_id_buf, path.shape[1])
     phi = env.anchor_fields.geodesic(ids, np.repeat(env.anchor_buf, path.shape[1]), path.reshape(-1, 3)).reshape(4, -1)
     assert np.all(phi[:, -1] < phi[:, 0] - 0.7 * ctrl.ec.horizon)
+    # The narrow field weighs clearance below narrow_clearance: its paths keep more of it than the env's own field's
+    # (narrow_clearance 0), and its Phi, a weighted length, is never below the distance.
+    plain = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, narrow_clearance=0.0)))
+    plain_clear = plain.plan(env)["clear"].min(axis=1)
+    assert plain.fallback.all()
+    narrow_clear = plan["clear"].min(axis=1)
+    assert np.all(narrow_clear > plain_clear) and np.all(narrow_clear >= 0.5)
+    pts = env.local_pos + np.array([5.0, 0.0, 0.0])
+    assert np.all(ctrl._phi(env, env.scene_id_buf, env.anchor_buf, pts, own=False)
+                  >= env.anchor_fields.geodesic(env.scene_id_buf, env.anchor_buf, pts) - 1e-6)  # fmt: skip
     normal = PlannerController(BaselineConfig())
     normal.plan(_env(n=4))  # training scenes 0-1: open enough for 0.5 m
     assert not normal.fallback.any()

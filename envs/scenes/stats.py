@@ -17,12 +17,19 @@ column                     definition
 ``tortuosity``             median over reachable start-region nodes of Phi / (straight x distance to the
                            goal region): 1 for an empty scene, larger with detours and traps
 ``start_reach_%``          percentage of traversable start-region nodes that can reach the goal
+``bottleneck_m``           *widest route*: the largest clearance ``r`` for which the nodes at flight
+                           heights (the start region's z range) with ESDF > ``r`` still link the start
+                           region to the goal region (26-connected; to the grid's resolution). The
+                           vehicle's centre must pass within this distance of an obstacle on every route;
+                           minus the vehicle radius it is the margin a controller has at the narrowest gap
+                           (the ESDF includes floor and ceiling, so it is capped by the slab's height)
 =========================  ============================================================================
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from envs.fields import SceneFields, region_mask
 from envs.scenes.families import OBSTACLE_X_MARGIN
@@ -30,8 +37,29 @@ from envs.scenes.scene import Scene
 
 COLUMNS = (
     "family", "index", "obstacles", "moving", "occupied_%", "median_esdf_m", "free_path_m", "tortuosity",
-    "start_reach_%",
+    "start_reach_%", "bottleneck_m",
 )  # fmt: skip
+
+
+def bottleneck_clearance(esdf: np.ndarray, start: np.ndarray, goal: np.ndarray, res: float) -> float:
+    """Largest ``r`` such that nodes with ``esdf > r`` link a ``start`` node to a ``goal`` node (26-connected).
+
+    Bisection on ``r`` to a tenth of the grid resolution; 0.0 when even ``r = 0`` does not link them.
+    """
+    structure = np.ones((3, 3, 3), dtype=bool)
+
+    def linked(r: float) -> bool:
+        labels, _ = ndimage.label(esdf > r, structure=structure)
+        a, b = labels[start], labels[goal]
+        return bool(np.intersect1d(a[a > 0], b[b > 0]).size)
+
+    lo, hi = 0.0, float(esdf.max())
+    if not linked(lo):
+        return 0.0
+    while hi - lo > 0.1 * res:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if linked(mid) else (lo, mid)
+    return lo
 
 
 def free_path_x(traversable: np.ndarray, res: float) -> np.ndarray:
@@ -75,7 +103,19 @@ def scene_stats(scene: Scene, fields: SceneFields) -> dict:
         "free_path_m": float(run[sel].mean()) if sel.any() else 0.0,
         "tortuosity": tort,
         "start_reach_%": 100.0 * float(reach.sum() / max(start.sum(), 1)),
+        "bottleneck_m": _bottleneck(scene, fields, z_lo, z_hi),
     }
+
+
+def _bottleneck(scene: Scene, fields: SceneFields, z_lo: float, z_hi: float) -> float:
+    """``bottleneck_m`` of the module docstring: the slab of flight heights, start region to goal region."""
+    grid = fields.grid
+    z = grid.axis(2)
+    k = np.flatnonzero((z >= z_lo - 1e-9) & (z <= z_hi + 1e-9))
+    slab = slice(k[0], k[-1] + 1)
+    start = region_mask(grid, scene.start_region)[:, :, slab]
+    goal = region_mask(grid, scene.goal_region)[:, :, slab]
+    return bottleneck_clearance(fields.esdf[:, :, slab], start, goal, grid.res)
 
 
 def format_table(rows: list[dict]) -> str:

@@ -224,3 +224,22 @@ def test_perlin_passability_check():
     assert _perlin_passable(occ)
     occ[5, 5] = True  # 0.5 m gap: clearance 0.25 m, too narrow
     assert not _perlin_passable(occ)
+
+
+def test_bottleneck_clearance_by_hand():
+    """Two routes from x = 0 to x = 9 on a 1 m grid: one through a node of ESDF 0.8, one through 0.5; the widest
+    route's clearance is 0.8 (to the bisection's tolerance), and 0 when no route is free."""
+    from envs.scenes.stats import bottleneck_clearance
+
+    esdf = np.full((10, 5, 1), -1.0)
+    esdf[:, 1] = 2.0  # route A along y = 1
+    esdf[5, 1] = 0.8  # its narrowest node
+    esdf[:, 3] = 2.0  # route B along y = 3
+    esdf[5, 3] = 0.5
+    start = np.zeros_like(esdf, dtype=bool)
+    goal = np.zeros_like(start)
+    start[0], goal[9] = True, True
+    r = bottleneck_clearance(esdf, start, goal, 1.0)
+    assert 0.7 <= r <= 0.8
+    esdf[5, 1] = esdf[5, 3] = -0.5  # both routes cut
+    assert bottleneck_clearance(esdf, start, goal, 1.0) == 0.0

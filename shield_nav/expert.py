@@ -54,11 +54,10 @@ class ExpertConfig:
     """The narrow field (descended where the inflated one is flat, e.g. in a maze of corridors narrower than twice
     ``field_radius``): the geodesic field of the env's own traversable space (the vehicle radius) whose Dijkstra
     weighs each metre by ``1 + narrow_weight * max(0, narrow_clearance - d) / narrow_clearance`` (``d`` the ESDF),
-    so its paths keep to the middle of narrow corridors instead of grazing their walls [m] (0: the env's own field,
-    unweighted)."""
+    so its paths keep to the middle of narrow corridors instead of grazing their walls [m] (0, or an env without
+    goal anchors, ``episode.goal_anchors: 0``: the env's own field, unweighted)."""
     narrow_weight: float = 4.0
     """Weight of that clearance cost."""
-
     horizon: float = 14.0
     """Length of the traced path [m] (longer than the braking distance at the highest speed)."""
     ds: float = 0.35

@@ -97,18 +97,6 @@ def hocbf_rows(
 
 # --------------------------------------------------------------------------------------------- constraint selection
 @nb.njit(cache=True, nogil=True)
-def _margin(rx: float, ry: float, rz: float, v: np.ndarray, a: np.ndarray, alpha0: float, alpha1: float,
-            r_safe: float) -> float:  # fmt: skip
-    """HOCBF row value 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2) (negative: violated)."""
-    return (
-        2.0 * (rx * a[0] + ry * a[1] + rz * a[2])
-        + 2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-        + alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
-        + alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
-    )
-
-
-@nb.njit(cache=True, nogil=True)
 def _rhs(rx: float, ry: float, rz: float, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float) -> float:
     """Right-hand side b of the row 2 r.a >= b: -2|v|^2 - alpha1 Bdot - alpha0 B, Bdot = 2 r.v, B = |r|^2 - r_safe^2."""
     return (
@@ -119,9 +107,12 @@ def _rhs(rx: float, ry: float, rz: float, v: np.ndarray, alpha0: float, alpha1: 
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _margin_s(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, ax: float, ay: float, az: float,
-              vv2: float, alpha0: float, alpha1: float, rs2: float) -> float:  # fmt: skip
-    """``_margin`` on scalars, with vv2 = 2|v|^2 and rs2 = r_safe^2 given (the same operations in the same order)."""
+def _margin(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, ax: float, ay: float, az: float,
+            vv2: float, alpha0: float, alpha1: float, rs2: float) -> float:  # fmt: skip
+    """HOCBF row value 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2) (negative: violated).
+
+    On scalars, with vv2 = 2|v|^2 and rs2 = r_safe^2 given.
+    """
     return (
         2.0 * (rx * ax + ry * ay + rz * az)
         + vv2
@@ -140,11 +131,11 @@ def _tighter_margin(ox: float, oy: float, oz: float, rx: float, ry: float, rz: f
     Scalars and an inlined body: a per-point call that passes arrays costs their reference counts, several times
     the arithmetic.
     """
-    m = _margin_s(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
+    m = _margin(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
     if use_lag:
         qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
         if qx * rx + qy * ry + qz * rz > 0.0:
-            m_lag = _margin_s(qx, qy, qz, k[9], k[10], k[11], k[6], k[7], k[8], k[13], alpha0, alpha1, k[14])
+            m_lag = _margin(qx, qy, qz, k[9], k[10], k[11], k[6], k[7], k[8], k[13], alpha0, alpha1, k[14])
             if m_lag < m:
                 return m_lag, True
     return m, False

@@ -137,7 +137,11 @@ class GoalAnchorFields:
                 f = self.stack.scene_fields(s)
                 trav = f.esdf > f.vehicle_radius
                 fill = nearest_traversable(trav, f.res)  # depends on the grid only: shared by the scene's anchors
-                jobs += [(s, k, trav, fill) for k in todo]
+                cost = None  # likewise
+                if self.clearance_cost is not None:
+                    d_ref, weight = self.clearance_cost
+                    cost = 1.0 + weight * np.clip(d_ref - f.esdf, 0.0, d_ref) / d_ref
+                jobs += [(s, k, trav, fill, cost) for k in todo]
         if not jobs:
             return
         names = sorted({f"{self.scenes[s].family}/{self.scenes[s].index}" for s, *_ in jobs})
@@ -145,15 +149,11 @@ class GoalAnchorFields:
         report(f"{', '.join(names)}: building {len(jobs)} goal-anchor field(s) (cold cache) ...")
 
         def solve(job: tuple) -> tuple[int, int, np.ndarray]:
-            s, k, trav, fill = job
+            s, k, trav, fill, cost = job
             f = self.stack.scene_fields(s)
             if not self.valid[s, k]:
                 return s, k, np.zeros(f.shape, np.float32)
             diag = float(np.linalg.norm(np.subtract(self.scenes[s].bounds_hi, self.scenes[s].bounds_lo)))
-            cost = None
-            if self.clearance_cost is not None:
-                d_ref, weight = self.clearance_cost
-                cost = 1.0 + weight * np.clip(d_ref - f.esdf, 0.0, d_ref) / d_ref
             return s, k, geodesic_field(trav, self._goal_mask(s, k), f.res, diag, self._stencil, fill, cost)[0]
 
         workers = min(len(jobs), os.cpu_count() or 1)

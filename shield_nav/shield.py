@@ -32,6 +32,7 @@ from shield_nav.shield_rows import (
     _min_margin,
     _select,
     accel_from_command,
+    braking_rows,
     ceiling_row,
     command_from_accel,
     ground_row,
@@ -48,6 +49,7 @@ __all__ = [
     "ShieldConfig",
     "ShieldOutput",
     "accel_from_command",
+    "braking_rows",
     "ceiling_row",
     "command_from_accel",
     "ground_row",
@@ -142,6 +144,19 @@ class ShieldConfig:
     Unlike the point barrier it is exact for a plane, so level flight never triggers it. 0: off (the paper's
     depth-only shield). Without it the obstacle rows' corrections can push a vehicle into the unseen ground
     (docs/shield.md, "Ground row")."""
+    barrier: str = "distance"
+    """Which barrier each obstacle point gets. ``distance``: the paper's HOCBF on B = |r|^2 - r_safe^2 (gains
+    ``alpha0``, ``alpha1``). ``braking``: the first-order stopping-distance barrier h = sqrt(2 a_b (|r| - r_safe)) -
+    c, with c the closing speed towards the point and a_b = ``brake_accel``: the vehicle may approach a point only
+    as fast as braking at a_b still stops it r_safe away (gain ``brake_gain``; docs/shield.md, "Braking barrier").
+    The |r|^2 barrier's head-on row allows about p d / 2 of closing speed at distance d whatever the vehicle can
+    brake, so at high speed it asks for more deceleration than the tilt limit gives; the braking barrier's asks for
+    at most a_b."""
+    brake_accel: float = 6.0
+    """a_b [m/s^2] of the braking barrier: the deceleration it plans with (the tilt limit gives at most g tan(50 deg)
+    = 11.7 m/s^2 level)."""
+    brake_gain: float = 4.0
+    """Class-K gain [1/s] of the braking barrier's first-order condition hdot >= -gain h."""
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
@@ -167,6 +182,12 @@ class ShieldConfig:
             f"{prefix}max_altitude",
             f"must be 0 (off) or finite and > min_altitude ({self.min_altitude}), got {self.max_altitude}",
         )
+        require(self.barrier in ("distance", "braking"), f"{prefix}barrier",
+                f"must be 'distance' or 'braking', got {self.barrier!r}")  # fmt: skip
+        require(self.brake_accel > 0 and math.isfinite(self.brake_accel), f"{prefix}brake_accel",
+                f"must be > 0, got {self.brake_accel}")  # fmt: skip
+        require(self.brake_gain > 0 and math.isfinite(self.brake_gain), f"{prefix}brake_gain",
+                f"must be > 0, got {self.brake_gain}")  # fmt: skip
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
                 f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
@@ -240,6 +261,7 @@ class HOCBFShield:
         self._o_buf = np.zeros((cfg.max_constraints, 3))  # the selected obstacle points
         self._row_buf = np.zeros(4)  # the tightest row of the active-set check: r (3), b
         self._a_buf = np.zeros(3)
+        self._brake = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain])
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
@@ -313,7 +335,7 @@ class HOCBFShield:
             pts, p, v, p_lag, v_lag, lagged is not None,
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
             c.point_filter[1], c.z_window[0], c.z_window[1], c.azimuth_sectors, c.elevation_sectors,
-            c.max_constraints, self._r_buf, self._b_buf, self._min_buf, self._o_buf,
+            c.max_constraints, self._r_buf, self._b_buf, self._min_buf, self._o_buf, self._brake,
         )  # fmt: skip
         r = self._r_buf[:n].copy()
         return r, 2.0 * r, self._b_buf[:n].copy()
@@ -337,7 +359,7 @@ class HOCBFShield:
         p_lag, v_lag = (p, v) if lagged is None else (np.asarray(x, dtype=np.float64) for x in lagged)
         return _min_margin(
             pts, p, v, p_lag, v_lag, lagged is not None, np.asarray(accel, dtype=np.float64), c.alpha0, c.alpha1,
-            c.r_safe, c.point_filter[0], c.point_filter[1], c.z_window[0], c.z_window[1], self._row_buf,
+            c.r_safe, c.point_filter[0], c.point_filter[1], c.z_window[0], c.z_window[1], self._row_buf, self._brake,
         )  # fmt: skip
 
     def _plane_rows(self, z: float, v_z: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,8 +1,9 @@
 """HOCBF rows: the acceleration model, the barrier rows, and which points of the cloud become rows.
 
 The numba kernels of :mod:`shield_nav.shield` (docs/shield.md, "Derivation", "Which points become constraints" and
-"Lag"). For a point o and the vehicle at p with velocity v, r = p - o, and the row of the HOCBF condition is
-2 r.a >= -2|v|^2 - alpha1 (2 r.v) - alpha0 (|r|^2 - r_safe^2).
+"Lag", "Braking barrier"). For a point o and the vehicle at p with velocity v, r = p - o, and the row of the HOCBF
+condition is 2 r.a >= -2|v|^2 - alpha1 (2 r.v) - alpha0 (|r|^2 - r_safe^2); the braking barrier's row has the same
+A = 2 r and its own right-hand side (``braking_rows``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,10 @@ import numba as nb
 import numpy as np
 
 from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
+
+BRAKE_EPS = 1.0e-3
+"""[m] Smallest |d - r_safe| the braking barrier divides by (keeps its rows finite at r_safe, where an approach
+then asks for far more braking than the vehicle has, and the QP relaxes)."""
 
 
 # --------------------------------------------------------------------------------------------- acceleration model
@@ -83,6 +88,28 @@ def ceiling_row(z: float, v_z: float, alpha0: float, alpha1: float, max_altitude
     return alpha1 * v_z - alpha0 * (max_altitude - z)
 
 
+def braking_rows(
+    r: np.ndarray, v: np.ndarray, r_safe: float, brake_accel: float, gain: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Braking-barrier rows A a >= b for offsets r (K, 3) = p - o and velocity v (3,) (docs/shield.md).
+
+    With d = |r|, n = r / d, the closing speed c = -n.v, e = d - r_safe and s = sqrt(2 brake_accel |e|), the barrier
+    h = sign(e) s - c (>= 0: braking at ``brake_accel`` along n stops the approach before r_safe; inside r_safe it
+    is negative and pushes out) gives the first-order CBF row
+    n.a >= -gain h + brake_accel c / s - (|v|^2 - c^2) / d  (s floored at |e| = ``BRAKE_EPS`` in the division),
+    written here scaled by 2d as  2 r.a >= 2 d b  so that A = 2 r as for the HOCBF rows.
+    """
+    r = np.atleast_2d(np.asarray(r, dtype=np.float64))
+    v = np.asarray(v, dtype=np.float64)
+    d = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
+    c = -(r @ v) / d
+    e = d - r_safe
+    s = np.sqrt(2.0 * brake_accel * np.maximum(np.abs(e), BRAKE_EPS))
+    h = np.sign(e) * np.sqrt(2.0 * brake_accel * np.abs(e)) - c
+    b = -gain * h + brake_accel * c / s - (float(v @ v) - c * c) / d
+    return 2.0 * r, 2.0 * d * b
+
+
 def hocbf_rows(
     r: np.ndarray, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -104,6 +131,36 @@ def _rhs(rx: float, ry: float, rz: float, v: np.ndarray, alpha0: float, alpha1: 
         - alpha1 * 2.0 * (rx * v[0] + ry * v[1] + rz * v[2])
         - alpha0 * (rx * rx + ry * ry + rz * rz - r_safe * r_safe)
     )
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _brake_rhs(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, r_safe: float, a_b: float,
+               gain: float) -> float:  # fmt: skip
+    """Right-hand side 2 d b of the braking row 2 r.a >= 2 d b on scalars (see ``braking_rows``)."""
+    d = max(math.sqrt(rx * rx + ry * ry + rz * rz), 1e-9)
+    c = -(rx * vx + ry * vy + rz * vz) / d
+    e = d - r_safe
+    s = math.sqrt(2.0 * a_b * max(abs(e), BRAKE_EPS))
+    h = math.copysign(math.sqrt(2.0 * a_b * abs(e)), e) - c
+    b = -gain * h + a_b * c / s - (vx * vx + vy * vy + vz * vz - c * c) / d
+    return 2.0 * d * b
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row_margin(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, k: tuple, vv2: float,
+                alpha0: float, alpha1: float) -> float:  # fmt: skip
+    """The row value of the configured barrier (``k[15]``: braking if > 0.5) at the acceleration in ``k``."""
+    if k[15] > 0.5:
+        return 2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - _brake_rhs(rx, ry, rz, vx, vy, vz, k[16], k[17], k[18])
+    return _margin(rx, ry, rz, vx, vy, vz, k[6], k[7], k[8], vv2, alpha0, alpha1, k[14])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row_rhs(rx: float, ry: float, rz: float, vs: np.ndarray, k: tuple, alpha0: float, alpha1: float) -> float:
+    """Right-hand side b of the configured barrier's row 2 r.a >= b at offset r and velocity vs."""
+    if k[15] > 0.5:
+        return _brake_rhs(rx, ry, rz, vs[0], vs[1], vs[2], k[16], k[17], k[18])
+    return _rhs(rx, ry, rz, vs, alpha0, alpha1, k[16])
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -131,25 +188,28 @@ def _tighter_margin(ox: float, oy: float, oz: float, rx: float, ry: float, rz: f
     Scalars and an inlined body: a per-point call that passes arrays costs their reference counts, several times
     the arithmetic.
     """
-    m = _margin(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
+    m = _row_margin(rx, ry, rz, k[0], k[1], k[2], k, k[12], alpha0, alpha1)
     if use_lag:
         qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
         if qx * rx + qy * ry + qz * rz > 0.0:
-            m_lag = _margin(qx, qy, qz, k[9], k[10], k[11], k[6], k[7], k[8], k[13], alpha0, alpha1, k[14])
+            m_lag = _row_margin(qx, qy, qz, k[9], k[10], k[11], k, k[13], alpha0, alpha1)
             if m_lag < m:
                 return m_lag, True
     return m, False
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, r_safe: float) -> tuple:
+def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, r_safe: float,
+            brake: np.ndarray) -> tuple:  # fmt: skip
     """The per-call constants of ``_tighter_margin`` as a tuple (a value: passing it per point costs nothing).
 
-    v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2.
+    v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2, then the barrier: ``brake`` = (braking flag,
+    brake_accel, gain) with the flag > 0.5 for the braking barrier, and r_safe.
     """
     return (v[0], v[1], v[2], p_lag[0], p_lag[1], p_lag[2], a[0], a[1], a[2], v_lag[0], v_lag[1], v_lag[2],
             2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
-            2.0 * (v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), r_safe * r_safe)  # fmt: skip
+            2.0 * (v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), r_safe * r_safe,
+            brake[0], r_safe, brake[1], brake[2])  # fmt: skip
 
 
 @nb.njit(cache=True, nogil=True)
@@ -169,6 +229,7 @@ def _min_margin(
     z_lo: float,
     z_hi: float,
     out_row: np.ndarray,
+    brake: np.ndarray,
 ) -> float:
     """The smallest row value at acceleration ``a`` over every point ``_select`` considers, and that row.
 
@@ -179,7 +240,7 @@ def _min_margin(
     best = np.inf
     best_i = -1
     best_lag = False
-    k = _consts(v, p_lag, a, v_lag, r_safe)
+    k = _consts(v, p_lag, a, v_lag, r_safe, brake)
     for i in range(points.shape[0]):
         rx = p[0] - points[i, 0]
         ry = p[1] - points[i, 1]
@@ -194,7 +255,7 @@ def _min_margin(
         ps, vs = (p_lag, v_lag) if best_lag else (p, v)
         rx, ry, rz = ps[0] - points[best_i, 0], ps[1] - points[best_i, 1], ps[2] - points[best_i, 2]
         out_row[0], out_row[1], out_row[2] = rx, ry, rz
-        out_row[3] = _rhs(rx, ry, rz, vs, alpha0, alpha1, r_safe)
+        out_row[3] = _row_rhs(rx, ry, rz, vs, k, alpha0, alpha1)
     return best
 
 
@@ -221,6 +282,7 @@ def _select(
     out_b: np.ndarray,
     out_min: np.ndarray,
     out_o: np.ndarray,
+    brake: np.ndarray,
 ) -> int:
     """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
 
@@ -239,7 +301,7 @@ def _select(
     best_i = np.full(n_sec, -1)
     best_lag = np.zeros(n_sec, dtype=np.bool_)
     two_pi = 2.0 * math.pi
-    k = _consts(v, p_lag, a_raw, v_lag, r_safe)
+    k = _consts(v, p_lag, a_raw, v_lag, r_safe, brake)
     for i in range(points.shape[0]):
         rx = p[0] - points[i, 0]
         ry = p[1] - points[i, 1]
@@ -270,6 +332,6 @@ def _select(
         rx, ry, rz = ps[0] - points[i, 0], ps[1] - points[i, 1], ps[2] - points[i, 2]
         out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
         out_o[n, 0], out_o[n, 1], out_o[n, 2] = points[i, 0], points[i, 1], points[i, 2]
-        out_b[n] = _rhs(rx, ry, rz, vs, alpha0, alpha1, r_safe)
+        out_b[n] = _row_rhs(rx, ry, rz, vs, k, alpha0, alpha1)
         n += 1
     return n

@@ -144,19 +144,19 @@ class ShieldConfig:
     Unlike the point barrier it is exact for a plane, so level flight never triggers it. 0: off (the paper's
     depth-only shield). Without it the obstacle rows' corrections can push a vehicle into the unseen ground
     (docs/shield.md, "Ground row")."""
-    barrier: str = "distance"
-    """Which barrier each obstacle point gets. ``distance``: the paper's HOCBF on B = |r|^2 - r_safe^2 (gains
-    ``alpha0``, ``alpha1``). ``braking``: the first-order stopping-distance barrier h = sqrt(2 a_b (|r| - r_safe)) -
-    c, with c the closing speed towards the point and a_b = ``brake_accel``: the vehicle may approach a point only
-    as fast as braking at a_b still stops it r_safe away (gain ``brake_gain``; docs/shield.md, "Braking barrier").
-    The |r|^2 barrier's head-on row allows about p d / 2 of closing speed at distance d whatever the vehicle can
-    brake, so at high speed it asks for more deceleration than the tilt limit gives; the braking barrier's asks for
-    at most a_b."""
-    brake_accel: float = 6.0
-    """a_b [m/s^2] of the braking barrier: the deceleration it plans with (the tilt limit gives at most g tan(50 deg)
-    = 11.7 m/s^2 level)."""
+    barrier: str = "braking"
+    """Which barrier each obstacle point gets. ``braking`` (default): the first-order stopping-distance barrier
+    h = sqrt(2 a_b (|r| - r_safe)) - c, with c the closing speed towards the point and a_b = ``brake_accel``: the
+    vehicle may approach a point only as fast as braking at a_b still stops it r_safe away (gain ``brake_gain``;
+    docs/shield.md, "Braking barrier"). ``distance``: the paper's HOCBF on B = |r|^2 - r_safe^2 (gains ``alpha0``,
+    ``alpha1``), whose head-on row allows about p d / 2 of closing speed at distance d whatever the vehicle can
+    brake, so that at high speed it asks for more deceleration than the tilt limit gives. ``alpha0``/``alpha1``
+    also set the altitude rows with either barrier."""
+    brake_accel: float = 8.0
+    """a_b [m/s^2] of the braking barrier: the deceleration it plans with, chosen on the validation scenes
+    (docs/shield.md, "Braking barrier"); the tilt limit gives at most g tan(50 deg) = 11.7 m/s^2 level."""
     brake_gain: float = 4.0
-    """Class-K gain [1/s] of the braking barrier's first-order condition hdot >= -gain h."""
+    """Class-K gain [1/s] of the braking barrier's first-order condition hdot >= -gain h (chosen on validation)."""
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by

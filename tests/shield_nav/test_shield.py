@@ -25,8 +25,10 @@ from shield_nav.shield import (
 )
 
 G = 9.81
-P4 = {"alpha0": 16.0, "alpha1": 8.0, "lag_s": 0.0}
-"""The gains p1 = p2 = 4 /s without the lag (the previous default): the tests hand-computed for them keep them."""
+P4 = {"barrier": "distance", "alpha0": 16.0, "alpha1": 8.0, "lag_s": 0.0}
+"""The distance barrier at p1 = p2 = 4 /s without the lag (an earlier default): the tests hand-computed for it keep it."""
+DIST = {"barrier": "distance"}
+"""The paper's |r|^2 barrier at the default gains (p1 = p2 = 8 /s): the tests of that barrier name it."""
 
 
 def test_hocbf_row_hand_computed():
@@ -214,7 +216,7 @@ def test_scripted_flights_shield_prevents_collisions(kind):
 
 
 def test_selected_rows_equal_hocbf_rows_and_one_per_sector():
-    shield = HOCBFShield(ShieldConfig(max_constraints=4, azimuth_sectors=4, elevation_sectors=1))
+    shield = HOCBFShield(ShieldConfig(**DIST, max_constraints=4, azimuth_sectors=4, elevation_sectors=1))
     pos, vel = np.array([0.0, 0.0, 1.0]), np.array([2.0, -1.0, 0.0])
     # Sectors of 90 deg in azimuth starting at -180 deg: [-180, -90), [-90, 0), [0, 90), [90, 180].
     # Three points ahead-left (azimuth 0..3 deg, one sector), one to the right (-90 deg), one behind (180 deg).
@@ -238,7 +240,7 @@ def test_ground_points_are_filtered_and_would_otherwise_trigger_level_flight():
     floor = np.stack((xs.ravel(), ys.ravel(), np.zeros(xs.size)), 1)
     cmd = np.array([[G, 0.0, 0.0, 0.0]])
     pos, vel = np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0.0, 0.0]])
-    gains = {"alpha0": 4.0, "alpha1": 4.0, "lag_s": 0.0}
+    gains = {"barrier": "distance", "alpha0": 4.0, "alpha1": 4.0, "lag_s": 0.0}
     on = HOCBFShield(ShieldConfig(**gains)).filter(cmd, pos, vel, points_w=[floor])
     off = HOCBFShield(ShieldConfig(**gains, z_window=[-1.0e9, 1.0e9])).filter(cmd, pos, vel, points_w=[floor])
     assert not on.active[0] and on.num_constraints[0] == 0
@@ -388,12 +390,16 @@ def test_altitude_band_config_is_checked():
 
 
 def _all_margins(pts, p, v, a, cfg):
-    """HOCBF row margins 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0 (|r|^2 - r_safe^2) of every point the shield
-    considers (point_filter distances, z_window heights), computed independently of the shield's selection."""
+    """Row margins A a - b of every point the shield considers (point_filter distances, z_window heights), computed
+    independently of the shield's selection: for the distance barrier 2 r.a + 2|v|^2 + alpha1 (2 r.v) + alpha0
+    (|r|^2 - r_safe^2), for the braking barrier from ``braking_rows``."""
     r = p - pts
     d = np.linalg.norm(r, axis=1)
     keep = (d >= cfg.point_filter[0]) & (d <= cfg.point_filter[1]) & (pts[:, 2] >= cfg.z_window[0])
     r = r[keep]
+    if cfg.barrier == "braking":
+        a_mat, b_vec = braking_rows(r, v, cfg.r_safe, cfg.brake_accel, cfg.brake_gain)
+        return a_mat @ a - b_vec
     return 2 * r @ a + 2 * v @ v + cfg.alpha1 * 2 * r @ v + cfg.alpha0 * (np.sum(r * r, axis=1) - cfg.r_safe**2)
 
 
@@ -425,17 +431,19 @@ def test_active_set_answer_keeps_every_cloud_point_safe():
             broken_paper += _all_margins(pts, p, v, ref.accel_safe[0], paper.cfg).min() < -0.01
     assert solved >= 100
     assert broken_paper >= 5
-    # The default shield (p = 8, lag 0.15 s): a solved answer keeps every point's row at the current state too (a
-    # point competes with the tighter of its two rows, in the selection and in the check at a*).
-    default, solved = HOCBFShield(), 0
-    for p, v, pts, cmd in _random_clouds(300, 11):
-        default.reset()  # each cloud is a new vehicle (no velocity history: zero acceleration in the prediction)
-        out = default.filter(cmd, p[None], v[None], points_w=[pts])
-        if out.active[0] and out.status[0] == STATUS_SOLVED:
-            solved += 1
-            m = _all_margins(pts, p, v, out.accel_safe[0], default.cfg)
-            assert m.min() >= -default.cfg.active_set_tol - 1e-5 * (1 + np.abs(m).max())
-    assert solved >= 50
+    # The default shield (braking barrier, lag 0.15 s) and the distance barrier at p = 8 with the lag: a solved
+    # answer keeps every point's row at the current state too (a point competes with the tighter of its two rows,
+    # in the selection and in the check at a*).
+    for cfg, min_solved in ((ShieldConfig(), 50), (ShieldConfig(**DIST), 50)):
+        shield, solved = HOCBFShield(cfg), 0
+        for p, v, pts, cmd in _random_clouds(300, 11):
+            shield.reset()  # each cloud is a new vehicle (no velocity history: zero acceleration in the prediction)
+            out = shield.filter(cmd, p[None], v[None], points_w=[pts])
+            if out.active[0] and out.status[0] == STATUS_SOLVED:
+                solved += 1
+                m = _all_margins(pts, p, v, out.accel_safe[0], cfg)
+                assert m.min() >= -cfg.active_set_tol - 1e-5 * (1 + np.abs(m).max())
+        assert solved >= min_solved, cfg.barrier
 
 
 def test_active_set_iterations_zero_is_the_one_shot_selection():
@@ -452,7 +460,7 @@ def test_lag_rows_are_the_barrier_at_the_predicted_state():
     point 3 m ahead, braking at 2 m/s^2 (velocity 5.02 -> 5.00 over 10 ms), lag 0.15 s:
     p_lag = 0.75 - 0.0225 = 0.7275 m further, v_lag = 5 - 0.3 = 4.7 m/s; r_lag = (-2.2725, 0, 0).
     B = 5.16425625 - 0.25 = 4.91425625, Bdot = 2 r.v = -21.3615, b = -2 (22.09) - 8 Bdot - 16 B = 48.0839."""
-    shield = HOCBFShield(ShieldConfig(alpha0=16.0, alpha1=8.0, lag_s=0.15, control_dt=0.01))
+    shield = HOCBFShield(ShieldConfig(**DIST, alpha0=16.0, alpha1=8.0, lag_s=0.15, control_dt=0.01))
     p, o = np.array([0.0, 0.0, 1.5]), np.array([[3.0, 0.0, 1.5]])  # above the shield's ground filter
     cmd = command_from_accel(np.zeros((1, 3)), np.zeros(1))
     shield.filter(cmd, p[None], np.array([[5.02, 0.0, 0.0]]), points_w=[o])  # the velocity of the previous call
@@ -467,7 +475,7 @@ def test_lag_rows_are_the_barrier_at_the_predicted_state():
     np.testing.assert_allclose(out.accel_safe[0], [b_vec[0] / a_mat[0, 0], 0.0, 0.0], atol=1e-6)
     # Without the lag the same state needs less braking: the row at (p, v) alone.
     a0, b0 = hocbf_rows(p - o, np.array([5.0, 0.0, 0.0]), 16.0, 8.0, 0.5)
-    plain = HOCBFShield(ShieldConfig(alpha0=16.0, alpha1=8.0, lag_s=0.0)).filter(
+    plain = HOCBFShield(ShieldConfig(**DIST, alpha0=16.0, alpha1=8.0, lag_s=0.0)).filter(
         cmd, p[None], np.array([[5.0, 0.0, 0.0]]), points_w=[o]
     )
     np.testing.assert_allclose(plain.accel_safe[0], [b0[0] / a0[0, 0], 0.0, 0.0], atol=1e-6)
@@ -482,7 +490,7 @@ def test_lag_prediction_that_passes_a_point_keeps_the_current_row():
     point keeps its row at the current state instead. 0.2 m before a point at 1.5 m/s, lag 0.15 s, p1 = p2 = 6:
     the predicted state is 0.025 m beyond it, where the row reads 0.05 a_x >= 3.5775 (a_x >= 72 m/s^2, forward
     through the point). The current row, -0.4 a_x >= 10.26, brakes; the answer is the lag-free shield's."""
-    gains = {"alpha0": 36.0, "alpha1": 12.0}
+    gains = {"barrier": "distance", "alpha0": 36.0, "alpha1": 12.0}
     p, o, v = np.array([0.0, 0.0, 1.5]), np.array([[0.2, 0.0, 1.5]]), np.array([[1.5, 0.0, 0.0]])
     a_lag, b_lag = hocbf_rows(np.array([[0.025, 0.0, 0.0]]), v[0], 36.0, 12.0, 0.5)
     assert a_lag[0, 0] == pytest.approx(0.05) and b_lag[0] == pytest.approx(3.5775)
@@ -499,7 +507,7 @@ def test_lag_aware_shield_stays_clear_where_the_lag_free_one_hits(kind):
     p1 = p2 = 8 /s (later, harder corrections) the lag-free shield lets the vehicle hit the obstacle at 5 m/s
     (measured minimum distance 0.19 m to the pole's and the wall's surface, contact); with lag_s = 0.15 s the same
     gains stop it at 0.50 m. Both flights start 12 m away at 5 m/s."""
-    gains = {"alpha0": 64.0, "alpha1": 16.0}
+    gains = {"barrier": "distance", "alpha0": 64.0, "alpha1": 16.0}
     lag_free = fly(kind, [5.0], shielded=True, duration=4.5, shield_cfg=ShieldConfig(**gains, lag_s=0.0))
     lagged = fly(kind, [5.0], shielded=True, duration=4.5, shield_cfg=ShieldConfig(**gains, lag_s=0.15))
     assert lag_free.collided.all()
@@ -531,7 +539,7 @@ def test_point_mass_flights_stay_outside_r_safe_where_the_one_shot_selection_doe
 
     one_shot = point_mass_flight(kind, speed, ShieldConfig(**P4, active_set_iterations=0))
     active_set = point_mass_flight(kind, speed, ShieldConfig(**P4))
-    default = point_mass_flight(kind, speed)
+    default = point_mass_flight(kind, speed, ShieldConfig(**DIST))
     tol = 0.005  # the discrete 10 ms steps
     assert default >= 0.5 - tol and active_set >= 0.5 - tol
     assert one_shot < 0.5 - tol
@@ -574,15 +582,15 @@ def test_braking_row_is_the_first_order_cbf_of_its_barrier():
 
 def test_braking_barrier_stops_a_head_on_approach_with_at_most_its_deceleration():
     """A point mass at 9 m/s flies at a point 12 m ahead with no command of its own (a_raw = 0) and only the shield
-    acting, no lag. The point becomes a row 10 m away (the point filter), where the braking barrier is inside its
-    safe set (h = sqrt(2 * 6 * 9.5) - 9 = 1.68 m/s), so it
-    brakes at no more than a_b = 6 m/s^2 and stops outside r_safe. The distance barrier at the default gains
-    (p1 = p2 = 8 /s) leaves the braking late and then asks for more than the tilt limit gives (g tan 50 = 11.7)."""
+    acting, no lag. The point becomes a row 10 m away (the point filter), where the braking barrier (a_b = 6 m/s^2
+    here) is inside its safe set (h = sqrt(2 * 6 * 9.5) - 9 = 1.68 m/s), so it brakes at no more than a_b and stops
+    outside r_safe. The distance barrier at its default gains (p1 = p2 = 8 /s) leaves the braking late and then asks
+    for more than the tilt limit gives (g tan 50 = 11.7)."""
     o = np.array([[12.0, 0.0, 1.5]])
     cmd = np.array([[G, 0.0, 0.0, 0.0]])  # hover thrust, level: a_raw = 0
     results = {}
     for barrier in ("braking", "distance"):
-        shield = HOCBFShield(ShieldConfig(barrier=barrier, lag_s=0.0))
+        shield = HOCBFShield(ShieldConfig(barrier=barrier, brake_accel=6.0, lag_s=0.0))
         pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
         peak_demand, d_min = 0.0, math.inf
         for _ in range(2000):  # 4 s in 2 ms steps (the barrier's discrete-time overshoot shrinks with the step)

@@ -261,7 +261,7 @@ class HOCBFShield:
         self._o_buf = np.zeros((cfg.max_constraints, 3))  # the selected obstacle points
         self._row_buf = np.zeros(4)  # the tightest row of the active-set check: r (3), b
         self._a_buf = np.zeros(3)
-        self._brake = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain])
+        self._brake_params = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain])
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
@@ -335,7 +335,7 @@ class HOCBFShield:
             pts, p, v, p_lag, v_lag, lagged is not None,
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
             c.point_filter[1], c.z_window[0], c.z_window[1], c.azimuth_sectors, c.elevation_sectors,
-            c.max_constraints, self._r_buf, self._b_buf, self._min_buf, self._o_buf, self._brake,
+            c.max_constraints, self._r_buf, self._b_buf, self._min_buf, self._o_buf, self._brake_params,
         )  # fmt: skip
         r = self._r_buf[:n].copy()
         return r, 2.0 * r, self._b_buf[:n].copy()
@@ -359,7 +359,8 @@ class HOCBFShield:
         p_lag, v_lag = (p, v) if lagged is None else (np.asarray(x, dtype=np.float64) for x in lagged)
         return _min_margin(
             pts, p, v, p_lag, v_lag, lagged is not None, np.asarray(accel, dtype=np.float64), c.alpha0, c.alpha1,
-            c.r_safe, c.point_filter[0], c.point_filter[1], c.z_window[0], c.z_window[1], self._row_buf, self._brake,
+            c.r_safe, c.point_filter[0], c.point_filter[1], c.z_window[0], c.z_window[1], self._row_buf,
+            self._brake_params,
         )  # fmt: skip
 
     def _plane_rows(self, z: float, v_z: float) -> tuple[np.ndarray, np.ndarray]:

@@ -12,6 +12,7 @@ from envs.config import ConfigError, load_config
 from envs.scenes.primitives import Box
 from shield_nav.scripted import fly
 from shield_nav.shield import (
+    STATUS_FALLBACK,
     STATUS_RELAXED,
     STATUS_SOLVED,
     HOCBFShield,
@@ -615,3 +616,23 @@ def test_barrier_config_is_checked():
         ShieldConfig(barrier="braking", brake_accel=0.0).validate()
     with pytest.raises(ConfigError, match="brake_gain"):
         ShieldConfig(brake_gain=float("nan")).validate()
+
+
+def test_solver_failure_falls_back_to_a_flyable_braking_command():
+    """When both QPs fail (a solver error), the shield brakes: a = -2 v, horizontally capped at 0.8 g tan 50 deg.
+    A solver cannot be made to fail on purpose, so a subclass stands in for its error (the only stand-in here)."""
+
+    class FailingSolver(HOCBFShield):
+        def _qp(self, p, q, g, h):
+            return None
+
+    shield = FailingSolver()
+    wall_x = 2.0
+    ys, zs = np.meshgrid(np.linspace(-2, 2, 21), np.linspace(0.5, 2.5, 11))
+    wall = np.stack((np.full(ys.size, wall_x), ys.ravel(), zs.ravel()), 1)
+    cmd = np.array([[G / math.cos(0.3), 0.0, 0.3, 0.0]])  # accelerating towards the wall at 6 m/s
+    out = shield.filter(cmd, np.array([[0.0, 0.0, 1.5]]), np.array([[6.0, 0.0, 0.0]]), points_w=[wall])
+    assert out.status[0] == STATUS_FALLBACK and out.active[0]
+    cap = 0.8 * G * math.tan(math.radians(50.0))  # 9.35 m/s^2 < 2 * 6 = 12
+    np.testing.assert_allclose(out.accel_safe[0], [-cap, 0.0, 0.0], atol=1e-9)
+    assert np.all(np.isfinite(out.command))

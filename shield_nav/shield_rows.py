@@ -104,8 +104,9 @@ def braking_rows(
     d = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
     c = -(r @ v) / d
     e = d - r_safe
-    s = np.sqrt(2.0 * brake_accel * np.maximum(np.abs(e), BRAKE_EPS))
-    h = np.sign(e) * np.sqrt(2.0 * brake_accel * np.abs(e)) - c
+    root = np.sqrt(2.0 * brake_accel * np.abs(e))
+    s = np.maximum(root, math.sqrt(2.0 * brake_accel * BRAKE_EPS))
+    h = np.sign(e) * root - c
     b = -gain * h + brake_accel * c / s - (float(v @ v) - c * c) / d
     return 2.0 * r, 2.0 * d * b
 
@@ -140,8 +141,9 @@ def _brake_rhs(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float,
     d = max(math.sqrt(rx * rx + ry * ry + rz * rz), 1e-9)
     c = -(rx * vx + ry * vy + rz * vz) / d
     e = d - r_safe
-    s = math.sqrt(2.0 * a_b * max(abs(e), BRAKE_EPS))
-    h = math.copysign(math.sqrt(2.0 * a_b * abs(e)), e) - c
+    root = math.sqrt(2.0 * a_b * abs(e))
+    s = max(root, math.sqrt(2.0 * a_b * BRAKE_EPS))  # one square root per point; the floor only for the division
+    h = math.copysign(root, e) - c
     b = -gain * h + a_b * c / s - (vx * vx + vy * vy + vz * vz - c * c) / d
     return 2.0 * d * b
 

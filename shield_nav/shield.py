@@ -30,6 +30,7 @@ from shield_nav.shield_rows import (
     _accel_from_command_1,
     _command_from_accel_1,
     _min_margin,
+    _rows_min_margin,
     _select,
     accel_from_command,
     braking_rows,
@@ -260,6 +261,8 @@ class HOCBFShield:
         self._min_buf = np.zeros(1)
         self._o_buf = np.zeros((cfg.max_constraints, 3))  # the selected obstacle points
         self._row_buf = np.zeros(4)  # the tightest row of the active-set check: r (3), b
+        self._rows = np.zeros((0, 8))  # braking barrier: every considered point's rows from the last selection
+        self._rows_n = np.zeros(1, dtype=np.int64)  # how many (-1: none kept, the distance barrier)
         self._a_buf = np.zeros(3)
         self._brake_params = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain])
         self._g = np.array([0.0, 0.0, cfg.gravity])
@@ -331,11 +334,14 @@ class HOCBFShield:
         p = np.asarray(pos_w, dtype=np.float64)
         v = np.asarray(vel_w, dtype=np.float64)
         p_lag, v_lag = (p, v) if lagged is None else (np.asarray(x, dtype=np.float64) for x in lagged)
+        if c.barrier == "braking" and len(self._rows) < len(pts):
+            self._rows = np.empty((max(len(pts), 2 * len(self._rows)), 8))
         n = _select(
             pts, p, v, p_lag, v_lag, lagged is not None,
             np.asarray(accel_raw, dtype=np.float64), c.alpha0, c.alpha1, c.r_safe, c.point_filter[0],
             c.point_filter[1], c.z_window[0], c.z_window[1], c.azimuth_sectors, c.elevation_sectors,
             c.max_constraints, self._r_buf, self._b_buf, self._min_buf, self._o_buf, self._brake_params,
+            self._rows, self._rows_n,
         )  # fmt: skip
         r = self._r_buf[:n].copy()
         return r, 2.0 * r, self._b_buf[:n].copy()
@@ -542,7 +548,11 @@ class HOCBFShield:
                 a_star, status[i], slack[i], solve_us[i] = self.solve(a_raw[i], a_mat, b_vec, v_i, plane_mat, plane_vec)
                 for _ in range(self.cfg.active_set_iterations if status[i] == STATUS_SOLVED else 0):
                     # Check every point at a*; add the most violated row if any is broken, and re-solve.
-                    if self.min_margin(pts, p_i, v_i, a_star, lagged) >= -self.cfg.active_set_tol:
+                    if self._rows_n[0] >= 0:  # braking rows kept by the selection: the same numbers, cheaper
+                        worst = _rows_min_margin(self._rows, int(self._rows_n[0]), a_star, self._row_buf)
+                    else:
+                        worst = self.min_margin(pts, p_i, v_i, a_star, lagged)
+                    if worst >= -self.cfg.active_set_tol:
                         break
                     a_mat = np.vstack((a_mat, 2.0 * self._row_buf[None, :3]))
                     b_vec = np.append(b_vec, self._row_buf[3])

@@ -136,13 +136,23 @@ def _rhs(rx: float, ry: float, rz: float, v: np.ndarray, alpha0: float, alpha1: 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _brake_rhs(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, r_safe: float, a_b: float,
-               gain: float) -> float:  # fmt: skip
-    """Right-hand side 2 d b of the braking row 2 r.a >= 2 d b on scalars (see ``braking_rows``)."""
-    d = max(math.sqrt(rx * rx + ry * ry + rz * rz), 1e-9)
+               gain: float, s_min: float) -> float:  # fmt: skip
+    """Right-hand side 2 d b of the braking row 2 r.a >= 2 d b on scalars (see ``braking_rows``).
+
+    ``s_min`` = sqrt(2 a_b BRAKE_EPS), the floor of the divisor s, computed once per call by ``_consts``.
+    """
+    return _brake_rhs_d(rx, ry, rz, math.sqrt(rx * rx + ry * ry + rz * rz), vx, vy, vz, r_safe, a_b, gain, s_min)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _brake_rhs_d(rx: float, ry: float, rz: float, dist: float, vx: float, vy: float, vz: float, r_safe: float,
+                 a_b: float, gain: float, s_min: float) -> float:  # fmt: skip
+    """``_brake_rhs`` with |r| given (``dist``), for a caller that has computed it already."""
+    d = max(dist, 1e-9)
     c = -(rx * vx + ry * vy + rz * vz) / d
     e = d - r_safe
     root = math.sqrt(2.0 * a_b * abs(e))
-    s = max(root, math.sqrt(2.0 * a_b * BRAKE_EPS))  # one square root per point; the floor only for the division
+    s = max(root, s_min)  # one square root per point; the floor only for the division
     h = math.copysign(root, e) - c
     b = -gain * h + a_b * c / s - (vx * vx + vy * vy + vz * vz - c * c) / d
     return 2.0 * d * b
@@ -153,7 +163,8 @@ def _row_margin(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float
                 alpha0: float, alpha1: float) -> float:  # fmt: skip
     """The row value of the configured barrier (``k[15]``: braking if > 0.5) at the acceleration in ``k``."""
     if k[15] > 0.5:
-        return 2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - _brake_rhs(rx, ry, rz, vx, vy, vz, k[16], k[17], k[18])
+        b = _brake_rhs(rx, ry, rz, vx, vy, vz, k[16], k[17], k[18], k[19])
+        return 2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - b
     return _margin(rx, ry, rz, vx, vy, vz, k[6], k[7], k[8], vv2, alpha0, alpha1, k[14])
 
 
@@ -161,7 +172,7 @@ def _row_margin(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float
 def _row_rhs(rx: float, ry: float, rz: float, vs: np.ndarray, k: tuple, alpha0: float, alpha1: float) -> float:
     """Right-hand side b of the configured barrier's row 2 r.a >= b at offset r and velocity vs."""
     if k[15] > 0.5:
-        return _brake_rhs(rx, ry, rz, vs[0], vs[1], vs[2], k[16], k[17], k[18])
+        return _brake_rhs(rx, ry, rz, vs[0], vs[1], vs[2], k[16], k[17], k[18], k[19])
     return _rhs(rx, ry, rz, vs, alpha0, alpha1, k[16])
 
 
@@ -206,12 +217,13 @@ def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, 
     """The per-call constants of ``_tighter_margin`` as a tuple (a value: passing it per point costs nothing).
 
     v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2, then the barrier: ``brake`` = (braking flag,
-    brake_accel, gain) with the flag > 0.5 for the braking barrier, and r_safe.
+    brake_accel, gain) with the flag > 0.5 for the braking barrier, r_safe, and the braking divisor's floor
+    sqrt(2 brake_accel BRAKE_EPS).
     """
     return (v[0], v[1], v[2], p_lag[0], p_lag[1], p_lag[2], a[0], a[1], a[2], v_lag[0], v_lag[1], v_lag[2],
             2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
             2.0 * (v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), r_safe * r_safe,
-            brake[0], r_safe, brake[1], brake[2])  # fmt: skip
+            brake[0], r_safe, brake[1], brake[2], math.sqrt(2.0 * brake[1] * BRAKE_EPS))  # fmt: skip
 
 
 @nb.njit(cache=True, nogil=True)
@@ -285,6 +297,8 @@ def _select(
     out_min: np.ndarray,
     out_o: np.ndarray,
     brake: np.ndarray,
+    rows: np.ndarray,
+    out_rows: np.ndarray,
 ) -> int:
     """Closest-in-constraint-terms point per direction sector, then the k_max tightest sectors.
 
@@ -297,6 +311,12 @@ def _select(
     HOCBF right-hand sides b (see ``hocbf_rows``) in out_b, and the smallest margin in out_min[0] (negative: the
     raw command violates a selected row, so the shield must act), and the selected points in out_o. Returns how
     many were written.
+
+    With the braking barrier, every considered point's rows are also written to ``rows`` (at least one row per
+    point): (r, b) of its row at the current state and (q, b_lag) of its row at the lagged state, or (0, -inf) where
+    that row does not compete; ``out_rows[0]`` gets their count. The braking rows' b does not depend on the
+    acceleration, so the active-set check at another acceleration (``_rows_min_margin``) reads them instead of
+    recomputing two square roots per point.
     """
     n_sec = n_az * n_el
     best_m = np.full(n_sec, np.inf)
@@ -304,6 +324,8 @@ def _select(
     best_lag = np.zeros(n_sec, dtype=np.bool_)
     two_pi = 2.0 * math.pi
     k = _consts(v, p_lag, a_raw, v_lag, r_safe, brake)
+    braking = k[15] > 0.5
+    nr = 0
     for i in range(points.shape[0]):
         rx = p[0] - points[i, 0]
         ry = p[1] - points[i, 1]
@@ -311,8 +333,27 @@ def _select(
         d2 = rx * rx + ry * ry + rz * rz
         if d2 < d_min * d_min or d2 > d_max * d_max or points[i, 2] < z_lo or points[i, 2] > z_hi:
             continue
-        m, lagged = _tighter_margin(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, k, use_lag, alpha0, alpha1)
         d = math.sqrt(d2)
+        if braking:  # _tighter_margin's braking branch, keeping the rows for the active-set check
+            b0 = _brake_rhs_d(rx, ry, rz, d, k[0], k[1], k[2], k[16], k[17], k[18], k[19])
+            m = 2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - b0
+            lagged = False
+            qx, qy, qz, b1 = 0.0, 0.0, 0.0, -np.inf
+            if use_lag:
+                qx, qy, qz = k[3] - points[i, 0], k[4] - points[i, 1], k[5] - points[i, 2]
+                if qx * rx + qy * ry + qz * rz > 0.0:
+                    b1 = _brake_rhs(qx, qy, qz, k[9], k[10], k[11], k[16], k[17], k[18], k[19])
+                    m_lag = 2.0 * (qx * k[6] + qy * k[7] + qz * k[8]) - b1
+                    if m_lag < m:
+                        m, lagged = m_lag, True
+                else:
+                    qx, qy, qz = 0.0, 0.0, 0.0
+            rows[nr, 0], rows[nr, 1], rows[nr, 2], rows[nr, 3] = rx, ry, rz, b0
+            rows[nr, 4], rows[nr, 5], rows[nr, 6], rows[nr, 7] = qx, qy, qz, b1
+            nr += 1
+        else:
+            m, lagged = _tighter_margin(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, k, use_lag, alpha0,
+                                        alpha1)  # fmt: skip
         az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
         el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]
         ia = min(int(az / two_pi * n_az), n_az - 1)
@@ -336,4 +377,31 @@ def _select(
         out_o[n, 0], out_o[n, 1], out_o[n, 2] = points[i, 0], points[i, 1], points[i, 2]
         out_b[n] = _row_rhs(rx, ry, rz, vs, k, alpha0, alpha1)
         n += 1
+    out_rows[0] = nr if braking else -1
     return n
+
+
+@nb.njit(cache=True, nogil=True)
+def _rows_min_margin(rows: np.ndarray, n: int, a: np.ndarray, out_row: np.ndarray) -> float:
+    """``_min_margin`` from the braking rows ``_select`` kept (``rows[:n]``): the smallest row value at ``a``.
+
+    Each point competes with the smaller of its two rows (the lagged one only if strictly smaller), as in
+    ``_min_margin``, so the result and ``out_row`` (r, b of the tightest row) are the same numbers.
+    """
+    best = np.inf
+    best_i = -1
+    best_lag = False
+    ax, ay, az = a[0], a[1], a[2]
+    for i in range(n):
+        m = 2.0 * (rows[i, 0] * ax + rows[i, 1] * ay + rows[i, 2] * az) - rows[i, 3]
+        lagged = False
+        m_lag = 2.0 * (rows[i, 4] * ax + rows[i, 5] * ay + rows[i, 6] * az) - rows[i, 7]
+        if m_lag < m:
+            m, lagged = m_lag, True
+        if m < best:
+            best, best_i, best_lag = m, i, lagged
+    if best_i >= 0:
+        j = 4 if best_lag else 0
+        out_row[0], out_row[1], out_row[2], out_row[3] = (rows[best_i, j], rows[best_i, j + 1], rows[best_i, j + 2],
+                                                          rows[best_i, j + 3])  # fmt: skip
+    return best

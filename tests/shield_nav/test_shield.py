@@ -636,3 +636,33 @@ def test_solver_failure_falls_back_to_a_flyable_braking_command():
     cap = 0.8 * G * math.tan(math.radians(50.0))  # 9.35 m/s^2 < 2 * 6 = 12
     np.testing.assert_allclose(out.accel_safe[0], [-cap, 0.0, 0.0], atol=1e-9)
     assert np.all(np.isfinite(out.command))
+
+
+def test_kept_braking_rows_give_the_cloud_check_exactly():
+    """The selection keeps every considered point's braking rows (their b does not depend on the acceleration), and
+    the active-set check reads them: at any acceleration it must return the same smallest row value and the same
+    row, to the last bit, as the check that recomputes every point (``min_margin``), with and without the lag
+    (including points the lagged prediction has passed, which keep their current row only)."""
+    from shield_nav.shield_rows import _rows_min_margin
+
+    rng = np.random.default_rng(3)
+    shield = HOCBFShield(ShieldConfig())
+    checked = 0
+    for p, v, pts, cmd in _random_clouds(60, 7):
+        a_raw = accel_from_command(cmd)[0]
+        for lagged in (None, (p + 0.6 * v + rng.normal(0.0, 0.3, 3), v + rng.normal(0.0, 2.0, 3))):
+            shield.constraints(pts, p, v, a_raw, lagged)
+            n = int(shield._rows_n[0])
+            assert 0 < n <= len(pts)
+            for a in (a_raw, a_raw + rng.normal(0.0, 5.0, 3)):
+                kept_row, full_row = np.zeros(4), np.zeros(4)
+                kept = _rows_min_margin(shield._rows, n, a, kept_row)
+                full = shield.min_margin(pts, p, v, a, lagged)
+                full_row[:] = shield._row_buf
+                assert kept == full and np.array_equal(kept_row, full_row)
+                checked += 1
+    assert checked == 240
+    distance = HOCBFShield(ShieldConfig(**DIST))
+    p, v, pts, cmd = next(iter(_random_clouds(1, 7)))
+    distance.constraints(pts, p, v, accel_from_command(cmd)[0])
+    assert distance._rows_n[0] == -1  # the distance barrier keeps no rows: its check recomputes them

@@ -1,6 +1,6 @@
 """How closely does a depth student imitate its expert, and how does it miss? Per-dimension imitation metrics.
 
-``python -m shield_nav.imitation checkpoints/student_3ms [--speed 3] [--level 8] [--steps 400] [--json]``
+``python -m shield_nav.imitation checkpoints/student [--speed 3] [--level 8] [--steps 400] [--json]``
 
 flies the student's own policy on its training scene family (the DAgger state distribution; training seeds only,
 no evaluation scene is touched) at one target speed and curriculum level. It labels every visited state with the

@@ -268,7 +268,7 @@ class RunnerConfig:
     count start fresh; empty = a randomly initialised student."""
     actor_init: str = ""
     """PPO only, optional: a checkpoint whose actor starts this run's actor (PPO fine-tuning of a distilled student):
-    a distillation checkpoint's ``student_state_dict`` (e.g. ``checkpoints/student_3ms/model.pt``) or a PPO
+    a distillation checkpoint's ``student_state_dict`` (e.g. ``checkpoints/student/model.pt``) or a PPO
     checkpoint's ``actor_state_dict``, with its observation normaliser and action std, and its stored curriculum
     levels when the env count matches. The critic, optimizer and iteration count start fresh."""
     critic_warmup_iterations: int = 0

@@ -211,8 +211,8 @@ def test_config_checks_name_the_key():
         load_train_config("configs/train/dijkstra_cbf.yaml", ["runner.actor.num_hypotheses=3"])
     with pytest.raises(ValueError, match="anchor_coef"):
         _algorithms(3, 8, float("nan"))
-    kick = load_train_config("configs/experiments/kickstart_3ms_dijkstra_cbf.yaml")
-    assert kick.runner.algorithm.anchor_target == "expert" and kick.runner.expert.kind == "oracle"
+    kick = load_train_config("configs/train/recipe_dijkstra_cbf.yaml")
+    assert kick.runner.algorithm.anchor_target == "expert" and kick.runner.expert.kind == "planner"
     assert rsl_rl_train_cfg(kick)["algorithm"]["anchor_target"] == "expert"
     with pytest.raises(ConfigError, match="runner.algorithm.anchor_target"):
         load("runner.algorithm.anchor_target=oracle")
@@ -234,11 +234,11 @@ def test_train_cli_fine_tunes_the_committed_student_and_a_resume_keeps_its_ancho
                               timeout=240)  # fmt: skip
 
     res = run("--config", "configs/experiments/finetune_3ms_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
-              "runner.actor_init=checkpoints/student_3ms/model.pt")  # its own start left the tree with the release
+              "runner.actor_init=checkpoints/student/model.pt")  # its own start left the tree with the release
     assert res.returncode == 0, res.stderr[-3000:]
     (run_name,) = os.listdir(os.path.join(root, "shield_nav"))
     run_dir = os.path.join(root, "shield_nav", run_name)
-    student = torch.load("checkpoints/student_3ms/model.pt", weights_only=False)
+    student = torch.load("checkpoints/student/model.pt", weights_only=False)
     student = student.get("student_state_dict") or student["actor_state_dict"]
     ckpt = torch.load(os.path.join(run_dir, "model_1.pt"), weights_only=False)
     assert ckpt["anchor_state_dict"].keys() == student.keys()
@@ -256,12 +256,13 @@ def test_train_cli_fine_tunes_the_committed_student_and_a_resume_keeps_its_ancho
     assert sorted({e.step for e in acc.Scalars("Loss/anchor")}) == [0, 1, 2]
 
 
-def test_train_cli_kickstarts_the_committed_student_with_the_oracle(tmp_path):
-    """train.py with the shipped kickstarting config: the env adapter computes the oracle's labels, the actor
-    trains against them after the critic's warm-up, and tensorboard gets Loss/anchor (DAgger's loss, > 0)."""
+def test_train_cli_kickstarts_the_committed_student_with_the_expert(tmp_path):
+    """train.py with a shipped recipe (PPO kickstarted by the planning expert): the env adapter computes the expert's
+    labels, the actor trains against them after the critic's warm-up, and tensorboard gets Loss/anchor (DAgger's
+    loss, > 0)."""
     root = str(tmp_path / "logs")
     res = subprocess.run(
-        [sys.executable, "train.py", "--config", "configs/experiments/kickstart_3ms_dijkstra_cbf.yaml",
+        [sys.executable, "train.py", "--config", "configs/train/recipe_dijkstra_cbf.yaml",
          "--max-iterations", "2", "--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8",
          "env.scenes.indices=[0,1]", "runner.algorithm.num_mini_batches=2", "runner.critic_warmup_iterations=1"],
         cwd=REPO, capture_output=True, text=True, timeout=240,
@@ -270,8 +271,8 @@ def test_train_cli_kickstarts_the_committed_student_with_the_oracle(tmp_path):
     (run_name,) = os.listdir(os.path.join(root, "shield_nav"))
     run_dir = os.path.join(root, "shield_nav", run_name)
     ckpt = torch.load(os.path.join(run_dir, "model_1.pt"), weights_only=False)
-    assert "anchor_state_dict" not in ckpt  # the reference is the oracle, not a frozen actor
-    start = torch.load("checkpoints/student_3ms/model.pt", weights_only=False)
+    assert "anchor_state_dict" not in ckpt  # the reference is the expert, not a frozen actor
+    start = torch.load("checkpoints/student/model.pt", weights_only=False)
     start = start.get("student_state_dict") or start["actor_state_dict"]
     moved = [k for k, v in ckpt["actor_state_dict"].items() if "normalizer" not in k and not torch.equal(v, start[k])]
     assert moved  # the second iteration (after the warm-up) moved the actor

@@ -361,7 +361,7 @@ def test_imitation_cli_on_the_committed_student():
     import subprocess
     import sys
 
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student_3ms",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
                           "--steps", "20", "--num-envs", "4", "--level", "2", "--json"],
                          cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
@@ -369,6 +369,6 @@ def test_imitation_cli_on_the_committed_student():
     assert out["samples"] == 80 and out["level"] == 2 and out["speed"] == 3.0
     per = out["per_dim"]
     assert out["mse"] == pytest.approx(np.mean([per[k]["mse"] for k in per]))
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student_3ms",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr

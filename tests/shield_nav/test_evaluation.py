@@ -357,13 +357,13 @@ def test_shipped_eval_configs_resolve(name):
 def test_truncated_torchscript_export_is_called_truncated(tmp_path):
     """A policy.pt cut short by an interrupted copy is reported as truncated, not as 'not a TorchScript export';
     a training checkpoint given instead of an export keeps its own message."""
-    good = os.path.join(ROOT, "checkpoints", "student_3ms", "policy.pt")
+    good = os.path.join(ROOT, "checkpoints", "student", "policy.pt")
     cut = tmp_path / "policy.pt"
     with open(good, "rb") as f:
         cut.write_bytes(f.read()[:20000])
     with pytest.raises(E.EvalError, match=r"\(20000 bytes\) is truncated or corrupt"):
         E.load_policy(str(cut), "cut")
-    train_ckpt = os.path.join(ROOT, "checkpoints", "student_3ms", "model.pt")
+    train_ckpt = os.path.join(ROOT, "checkpoints", "student", "model.pt")
     with pytest.raises(E.EvalError, match="is not a TorchScript export"):
         E.load_policy(train_ckpt, "ckpt")
     assert E.load_policy(good, "good").info.obs_dim > 0

@@ -199,7 +199,7 @@ def test_distillation_inputs_fail_fast(tmp_path):
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.obs_groups.actor=[teacher]"], timeout=120)
     assert res.returncode == 2 and "env.local_map.enabled" in res.stderr
     res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", "--log-dir", root, "--set",
-                     "runner.teacher_checkpoint=checkpoints/student_3ms/model.pt",
+                     "runner.teacher_checkpoint=checkpoints/student/model.pt",
                      "runner.student_init=nowhere/student.pt"], timeout=120)  # fmt: skip
     assert res.returncode == 2 and "runner.student_init" in res.stderr and "nowhere/student.pt" in res.stderr
     res = run_train([*TINY, "--log-dir", root, "--set", "runner.student_init=checkpoints/dijkstra_cbf/model.pt"])
@@ -248,12 +248,18 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         path = getattr(r, key)
         assert not path or os.path.isfile(os.path.join(REPO, path)), f"{name}: runner.{key} {path!r} missing"
     if name in ("recipe_distance.yaml", "recipe_dijkstra.yaml", "recipe_dijkstra_cbf.yaml"):
-        # the shipped formulations: PPO on the traps layout from the shipped student, no oracle, the drift penalty
-        assert cfg.env.scenes.family == "train_traps" and not r.expert.kind
-        assert r.algorithm.anchor_target == "actor_init" and r.actor_init == "checkpoints/student_3ms/model.pt"
+        # the shipped formulations: PPO at 3-9 m/s from the shipped student, kickstarted by the planning expert; the
+        # three differ in the reward only (and the expert's narrow field, see recipe_dijkstra_cbf.yaml)
+        assert cfg.env.scenes.family == "train_shapes" and r.expert.kind == "planner"
+        assert sorted(set(cfg.env.episode.target_speeds)) == [3.0, 5.0, 7.0, 9.0]
+        assert r.algorithm.anchor_target == "expert" and r.actor_init == "checkpoints/student/model.pt"
         want = {"recipe_distance.yaml": "euclidean"}.get(name, "geodesic")
         assert cfg.env.reward.navigation == want
         assert (cfg.env.reward.scales["safety"] > 0) == (name == "recipe_dijkstra_cbf.yaml")
+    if name == "recipe_student.yaml":  # DAgger from the planning expert at 3-9 m/s, from the shipped third cycle
+        assert r.class_name == "DistillationRunner" and r.expert.kind == "planner"
+        assert r.student_init == "checkpoints/student_cycle3/model.pt"
+        assert sorted(set(cfg.env.episode.target_speeds)) == [3.0, 5.0, 7.0, 9.0]
 
 
 def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeypatch):
@@ -281,7 +287,7 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, monkeyp
 
 def test_truncated_resume_checkpoint_fails_fast_by_name(tmp_path):
     """A checkpoint cut short by an interrupted copy: a clear error naming --resume, no traceback, no run folder."""
-    good = os.path.join(REPO, "checkpoints", "student_3ms", "model.pt")
+    good = os.path.join(REPO, "checkpoints", "student", "model.pt")
     cut = tmp_path / "model_10.pt"
     with open(good, "rb") as f:
         cut.write_bytes(f.read()[:5000])

@@ -159,13 +159,34 @@ def _brake_rhs_d(rx: float, ry: float, rz: float, dist: float, vx: float, vy: fl
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _row_margin(rx: float, ry: float, rz: float, vx: float, vy: float, vz: float, k: tuple, vv2: float,
-                alpha0: float, alpha1: float) -> float:  # fmt: skip
-    """The row value of the configured barrier (``k[15]``: braking if > 0.5) at the acceleration in ``k``."""
-    if k[15] > 0.5:
-        b = _brake_rhs(rx, ry, rz, vx, vy, vz, k[16], k[17], k[18], k[19])
-        return 2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - b
-    return _margin(rx, ry, rz, vx, vy, vz, k[6], k[7], k[8], vv2, alpha0, alpha1, k[14])
+def _braking_point_rows(ox: float, oy: float, oz: float, rx: float, ry: float, rz: float, d: float, k: tuple,
+                        use_lag: bool) -> tuple[float, float, float, float, float]:  # fmt: skip
+    """A point's braking rows, which do not depend on the acceleration.
+
+    b0 of its row now (A = 2 r, ``d`` = |r|), and (q, b1) of its row at the lagged state, or (0, 0, 0, -inf) where
+    that row does not compete (no lag, or the prediction has passed the point: (p_lag - o).(p - o) <= 0). ``k``
+    holds the constants of ``_consts``.
+    """
+    b0 = _brake_rhs_d(rx, ry, rz, d, k[0], k[1], k[2], k[16], k[17], k[18], k[19])
+    if use_lag:
+        qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
+        if qx * rx + qy * ry + qz * rz > 0.0:
+            return b0, qx, qy, qz, _brake_rhs(qx, qy, qz, k[9], k[10], k[11], k[16], k[17], k[18], k[19])
+    return b0, 0.0, 0.0, 0.0, -np.inf
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _pair_margin(rx: float, ry: float, rz: float, b0: float, qx: float, qy: float, qz: float, b1: float, ax: float,
+                 ay: float, az: float) -> tuple[float, bool]:  # fmt: skip
+    """The smaller row value at a of a point's two rows 2 r.a >= b0 and 2 q.a >= b1, and whether it is the second.
+
+    The second wins only if strictly smaller; a row (0, -inf) never does.
+    """
+    m = 2.0 * (rx * ax + ry * ay + rz * az) - b0
+    m_lag = 2.0 * (qx * ax + qy * ay + qz * az) - b1
+    if m_lag < m:
+        return m_lag, True
+    return m, False
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -201,11 +222,15 @@ def _tighter_margin(ox: float, oy: float, oz: float, rx: float, ry: float, rz: f
     Scalars and an inlined body: a per-point call that passes arrays costs their reference counts, several times
     the arithmetic.
     """
-    m = _row_margin(rx, ry, rz, k[0], k[1], k[2], k, k[12], alpha0, alpha1)
+    if k[15] > 0.5:  # braking
+        b0, qx, qy, qz, b1 = _braking_point_rows(ox, oy, oz, rx, ry, rz, math.sqrt(rx * rx + ry * ry + rz * rz), k,
+                                                 use_lag)  # fmt: skip
+        return _pair_margin(rx, ry, rz, b0, qx, qy, qz, b1, k[6], k[7], k[8])
+    m = _margin(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
     if use_lag:
         qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
         if qx * rx + qy * ry + qz * rz > 0.0:
-            m_lag = _row_margin(qx, qy, qz, k[9], k[10], k[11], k, k[13], alpha0, alpha1)
+            m_lag = _margin(qx, qy, qz, k[9], k[10], k[11], k[6], k[7], k[8], k[13], alpha0, alpha1, k[14])
             if m_lag < m:
                 return m_lag, True
     return m, False
@@ -335,19 +360,9 @@ def _select(
             continue
         d = math.sqrt(d2)
         if braking:  # _tighter_margin's braking branch, keeping the rows for the active-set check
-            b0 = _brake_rhs_d(rx, ry, rz, d, k[0], k[1], k[2], k[16], k[17], k[18], k[19])
-            m = 2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - b0
-            lagged = False
-            qx, qy, qz, b1 = 0.0, 0.0, 0.0, -np.inf
-            if use_lag:
-                qx, qy, qz = k[3] - points[i, 0], k[4] - points[i, 1], k[5] - points[i, 2]
-                if qx * rx + qy * ry + qz * rz > 0.0:
-                    b1 = _brake_rhs(qx, qy, qz, k[9], k[10], k[11], k[16], k[17], k[18], k[19])
-                    m_lag = 2.0 * (qx * k[6] + qy * k[7] + qz * k[8]) - b1
-                    if m_lag < m:
-                        m, lagged = m_lag, True
-                else:
-                    qx, qy, qz = 0.0, 0.0, 0.0
+            b0, qx, qy, qz, b1 = _braking_point_rows(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, d, k,
+                                                     use_lag)  # fmt: skip
+            m, lagged = _pair_margin(rx, ry, rz, b0, qx, qy, qz, b1, k[6], k[7], k[8])
             rows[nr, 0], rows[nr, 1], rows[nr, 2], rows[nr, 3] = rx, ry, rz, b0
             rows[nr, 4], rows[nr, 5], rows[nr, 6], rows[nr, 7] = qx, qy, qz, b1
             nr += 1
@@ -393,11 +408,8 @@ def _rows_min_margin(rows: np.ndarray, n: int, a: np.ndarray, out_row: np.ndarra
     best_lag = False
     ax, ay, az = a[0], a[1], a[2]
     for i in range(n):
-        m = 2.0 * (rows[i, 0] * ax + rows[i, 1] * ay + rows[i, 2] * az) - rows[i, 3]
-        lagged = False
-        m_lag = 2.0 * (rows[i, 4] * ax + rows[i, 5] * ay + rows[i, 6] * az) - rows[i, 7]
-        if m_lag < m:
-            m, lagged = m_lag, True
+        m, lagged = _pair_margin(rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4], rows[i, 5], rows[i, 6],
+                                 rows[i, 7], ax, ay, az)  # fmt: skip
         if m < best:
             best, best_i, best_lag = m, i, lagged
     if best_i >= 0:

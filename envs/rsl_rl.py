@@ -15,6 +15,11 @@ expert    (N, 4)                a scripted expert's normalised action for the cu
                                 adapter is built with ``expert=``; the label of oracle-DAgger distillation)
 ========  ====================  ==========================================================
 
+With a ``command_filter`` (the HOCBF shield in the loop, ``shield_in_loop`` of the train config), every step's
+actions are mapped to commands, filtered, and the filtered commands are flown (``NavigationEnv.step(commands=)``):
+the learner trains the system it is deployed as; ``extras["log"]["shield/active"]`` is the share of envs whose command
+the filter changed that step.
+
 ``extras["time_outs"]`` (N,) marks truncations for bootstrapping; ``extras["log"]`` holds per-step reward-term means
 and, for finished episodes, their outcomes (success, collision, timeout, out of bounds), mean speed and clearance,
 which rsl-rl's logger averages per iteration and writes to tensorboard.
@@ -23,6 +28,7 @@ which rsl-rl's logger averages per iteration and writes to tensorboard.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -30,6 +36,18 @@ from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
 from envs.navigation import NavigationEnv
+
+
+class CommandFilter(Protocol):
+    """A per-step command filter between the learner's actions and the vehicles (e.g. the HOCBF shield)."""
+
+    def __call__(self, env: NavigationEnv, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The commands (N, 4) to fly for normalised ``actions`` (N, 4), and which of them the filter changed (N,)."""
+        ...
+
+    def reset(self, ids: np.ndarray) -> None:
+        """Forget per-vehicle memory of envs ``ids`` (they start a new episode)."""
+        ...
 
 
 class RslRlVecEnv(VecEnv):
@@ -47,9 +65,11 @@ class RslRlVecEnv(VecEnv):
         env: NavigationEnv,
         device: str | torch.device = "cpu",
         expert: Callable[[NavigationEnv], np.ndarray] | None = None,
+        command_filter: CommandFilter | None = None,
     ) -> None:  # noqa: D107
         self.env = env
         self.expert = expert
+        self.command_filter = command_filter
         self.cfg = env.cfg
         self.device = torch.device(device)
         self.num_envs = env.num_envs
@@ -97,6 +117,8 @@ class RslRlVecEnv(VecEnv):
         if lv.shape != (self.num_envs,) or lv.min() < 0 or lv.max() >= len(self.env.scenes):
             raise ValueError(f"curriculum levels must be {self.num_envs} ints in 0..{len(self.env.scenes) - 1}")
         self.env.level_buf[:] = lv
+        if self.command_filter is not None:
+            self.command_filter.reset(np.arange(self.num_envs))
         obs, info = self.env.reset()
         self._obs = self._to_tensordict(obs, info)
 
@@ -106,9 +128,17 @@ class RslRlVecEnv(VecEnv):
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """Step with actions (N, 4); returns observations, rewards (N,), dones (N,) and extras."""
-        obs, rew, term, trunc, info = self.env.step(actions.detach().cpu().numpy().astype(np.float64))
+        act = actions.detach().cpu().numpy().astype(np.float64)
+        commands = active = None
+        if self.command_filter is not None:
+            commands, active = self.command_filter(self.env, act)
+        obs, rew, term, trunc, info = self.env.step(act, commands=commands)
+        if self.command_filter is not None:
+            self.command_filter.reset(np.flatnonzero(term | trunc))
         self._obs = self._to_tensordict(obs, info)
         log = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in info["log"].items()}
+        if active is not None:
+            log["shield/active"] = torch.as_tensor(float(np.mean(active)), dtype=torch.float32)
         extras = {"time_outs": torch.from_numpy(trunc).to(self.device), "log": log}
         dones = torch.from_numpy(term | trunc).to(self.device)
         return self._obs, torch.from_numpy(rew.astype(np.float32)).to(self.device), dones, extras

@@ -14,6 +14,7 @@ from envs.config import ConfigError, load_config, require, select_raw, to_dict
 from envs.navigation import NavConfig
 from shield_nav.anchored import ANCHOR_TARGETS
 from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
+from shield_nav.shield import ShieldConfig
 
 CHECKPOINT_FORMAT_VERSION = 2
 """Version of the ``infos`` layout inside ``model_<it>.pt``; bump it and add a migration when it changes."""
@@ -308,6 +309,13 @@ class TrainConfig:
     """The task (``envs.navigation.NavConfig``)."""
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     """The learner."""
+    shield_in_loop: bool = False
+    """Fly every training step's command through the HOCBF shield (``shield``), so the learner trains the deployed
+    system, policy behind the shield: PPO's environment includes the shield, and a DAgger student visits the states
+    of the shielded flight, which its expert labels (:mod:`shield_nav.training.shield_loop`). False: the policy alone
+    (the paper's training)."""
+    shield: ShieldConfig = field(default_factory=ShieldConfig)
+    """The shield of ``shield_in_loop`` (:class:`shield_nav.shield.ShieldConfig`; defaults = the evaluation's)."""
 
     def validate(self, prefix: str = "") -> None:
         """Cross-field checks naming the key."""
@@ -319,6 +327,7 @@ class TrainConfig:
             f"must be 'cpu' or 'cuda[:i]', got {self.device!r}",
         )
         r = self.runner
+        self.shield.validate(f"{prefix}shield.")
         require(r.num_steps_per_env >= 1, f"{prefix}runner.num_steps_per_env", "must be >= 1")
         require(r.save_interval >= 1, f"{prefix}runner.save_interval", "must be >= 1")
         runners = ("OnPolicyRunner", "DistillationRunner")

@@ -132,7 +132,12 @@ def make_env(cfg: TrainConfig) -> VecEnv:
     expert = None
     if cfg.runner.expert.kind:
         expert = EXPERTS[cfg.runner.expert.kind](cfg.runner.expert.params)
-    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert)
+    command_filter = None
+    if cfg.shield_in_loop:
+        from shield_nav.training.shield_loop import ShieldInLoop
+
+        command_filter = ShieldInLoop(cfg.shield, cfg.env.camera)
+    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert, command_filter=command_filter)
 
 
 def _randomize_episode_lengths(env: VecEnv) -> None:

@@ -1,0 +1,93 @@
+"""The shield in the training loop (shield_nav/training/shield_loop.py, envs/rsl_rl.py ``command_filter``)."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from envs.navigation import NavigationEnv
+from envs.rsl_rl import RslRlVecEnv
+from shield_nav.baselines import BaselineConfig, make_baseline
+from shield_nav.shield import HOCBFShield, ShieldConfig
+from shield_nav.training.config import ConfigError, load_train_config
+from shield_nav.training.shield_loop import ShieldInLoop
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+SMALL = {"scenes.indices": [0, 1]}  # randomization on: both envs draw it from the same seed
+# Two vehicles that fly straight at their goals at 9 m/s through ablation-family clutter: the shield must act.
+OPTS = {"scene_ids": [0, 1], "start": [[0.5, 1.0, 1.5]] * 2, "goal": [[63.5, 2.0, 1.5]] * 2, "speed": [9.0, 9.0],
+        "yaw": [0.0, 0.0]}  # fmt: skip
+
+
+def _env():
+    env = NavigationEnv(num_envs=2, **SMALL)
+    env.reset(seed=0, options=OPTS)
+    return env
+
+
+def test_the_adapter_flies_exactly_what_an_independent_shield_commands():
+    looped, ref, alone = _env(), _env(), _env()
+    vec = RslRlVecEnv(looped, command_filter=ShieldInLoop(ShieldConfig(), looped.cfg.camera))
+    looped.reset(seed=0, options=OPTS)  # the adapter's own reset drew random episodes; restart both on OPTS
+    shield = HOCBFShield(ShieldConfig(), ref.cfg.camera)
+    goal = make_baseline("goal", BaselineConfig())
+    goal.reset(ref)
+    active_steps = 0
+    for _ in range(150):
+        act = np.clip(ref.command_to_action(goal.commands(ref)), -1.0, 1.0)
+        out = shield.filter(ref.action_to_command(act), ref.local_pos, ref.vehicles.vel_w, depth=ref.sensor_depth_buf,
+                            R_wb=ref.vehicles.R_wb)  # fmt: skip
+        _, _, term, trunc, _ = ref.step(act, commands=out.command)
+        shield.reset(np.flatnonzero(term | trunc))
+        alone.step(act)
+        _, _, done, extras = vec.step(torch.from_numpy(act))
+        np.testing.assert_array_equal(looped.local_pos, ref.local_pos)
+        np.testing.assert_array_equal(looped.vehicles.vel_w, ref.vehicles.vel_w)
+        np.testing.assert_array_equal(done.numpy(), term | trunc)
+        assert float(extras["log"]["shield/active"]) == pytest.approx(out.active.mean())
+        active_steps += int(out.active.sum())
+    assert active_steps > 20  # the shield acted, so the equality above says something
+    assert not np.array_equal(alone.local_pos, ref.local_pos)  # and what it did changed the flight
+
+
+def test_a_finished_episode_forgets_the_shields_vehicle_state():
+    env = _env()
+    loop = ShieldInLoop(ShieldConfig(), env.cfg.camera)
+    vec = RslRlVecEnv(env, command_filter=loop)
+    for _ in range(3):
+        vec.step(torch.zeros(2, 4))
+    assert set(loop.shield._prev_vel) == {0, 1}  # the lag model keeps each vehicle's previous velocity
+    loop.reset(np.array([1]))
+    assert set(loop.shield._prev_vel) == {0}
+    vec.set_curriculum_levels([0, 0])  # every episode restarts: nothing is kept
+    assert loop.shield._prev_vel == {}
+
+
+def test_shield_keys_of_the_train_config_are_checked_by_name():
+    cfg = load_train_config(os.path.join(REPO, "configs/train/quick.yaml"),
+                            ["shield_in_loop=true", "shield.brake_accel=9"])  # fmt: skip
+    assert cfg.shield_in_loop and cfg.shield.brake_accel == 9.0 and cfg.shield.lag_s == ShieldConfig().lag_s
+    with pytest.raises(ConfigError, match="shield.bogus"):
+        load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["shield.bogus=1"])
+    with pytest.raises(ConfigError, match="shield.r_safe"):
+        load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["shield.r_safe=-1"])
+
+
+def test_train_cli_with_the_shield_in_the_loop_logs_its_activity(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    root = str(tmp_path / "logs")
+    args = ["--config", "configs/train/quick.yaml", "--num-envs", "4", "--set", "runner.num_steps_per_env=8",
+            "--set", "shield_in_loop=true", "--max-iterations", "2", "--log-dir", root]  # fmt: skip
+    res = subprocess.run([sys.executable, "train.py", *args], cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-3000:]
+    (run,) = [os.path.join(root, "quick", d) for d in os.listdir(os.path.join(root, "quick"))]
+    acc = EventAccumulator(run)
+    acc.Reload()
+    values = [e.value for e in acc.Scalars("shield/active")]
+    assert len(values) == 2 and all(0.0 <= v <= 1.0 for v in values)
+    stored = torch.load(os.path.join(run, "model_1.pt"), weights_only=False)["infos"]["config"]
+    assert stored["shield_in_loop"] is True and stored["shield"]["brake_accel"] == ShieldConfig().brake_accel

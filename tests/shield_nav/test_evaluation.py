@@ -450,7 +450,9 @@ def test_row_registry_is_yaml_with_the_paper_names_and_rejects_unknown_keys(tmp_
     rows, checkpoints = E.load_registry()
     assert [rows[k].label for k in ("distance", "dijkstra", "dijkstra_cbf", "full")] == [
         "Distance", "Dijkstra", "Dijkstra + CBF", "Full"]  # fmt: skip
-    assert rows["full"].policy == "dijkstra_cbf" and rows["full"].shield and not rows["dijkstra_cbf"].shield
+    assert rows["full"].policy == "full" and rows["full"].shield and not rows["dijkstra_cbf"].shield
+    # the paper's literal Full (the Dijkstra + CBF policy trained alone, behind the shield) stays a row of its own
+    assert rows["dijkstra_cbf_shield"].policy == "dijkstra_cbf" and rows["dijkstra_cbf_shield"].shield
     assert all(os.path.isdir(os.path.join(ROOT, p)) for p in checkpoints.values())  # every shipped policy is there
     bad = tmp_path / "rows.yaml"
     bad.write_text("rows:\n  mine: {label: x, controler: oracle}\n")

@@ -256,6 +256,17 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         want = {"recipe_distance.yaml": "euclidean"}.get(name, "geodesic")
         assert cfg.env.reward.navigation == want
         assert (cfg.env.reward.scales["safety"] > 0) == (name == "recipe_dijkstra_cbf.yaml")
+    if name == "recipe_full.yaml":  # the Dijkstra + CBF recipe, trained behind the shield: nothing else differs
+        from envs.config import to_dict
+
+        base = to_dict(load_train_config(os.path.join(REPO, "configs", "train", "recipe_dijkstra_cbf.yaml")))
+        full = to_dict(cfg)
+        assert {k for k in full if full[k] != base[k]} == {"name", "shield_in_loop"} and cfg.shield_in_loop
+        ckpt = torch.load(os.path.join(REPO, "checkpoints", "full", "model.pt"), weights_only=False)
+        stored = ckpt["infos"]["config"]
+        assert {k for k in full if full[k] != stored.get(k)} <= {"name"}  # the recipe rebuilds the shipped run
+    else:
+        assert not cfg.shield_in_loop
     if name == "recipe_student.yaml":  # DAgger from the planning expert at 3-9 m/s, from the shipped third cycle
         assert r.class_name == "DistillationRunner" and r.expert.kind == "planner"
         assert r.student_init == "checkpoints/student_cycle3/model.pt"

@@ -140,13 +140,13 @@ def test_bad_input_errors(tmp_path):
     # A missing checkpoint: an error with 'error' (the default) and for explicitly given ones; 'skip' marks the row.
     missing = str(tmp_path / "nowhere")
     with pytest.raises(E.EvalError, match="does not exist"):
-        E.prepare(tiny_cfg("configurations=[full]", f"checkpoints.dijkstra_cbf={missing}"))
-    prep = E.prepare(tiny_cfg("configurations=[full,goal_seeking]", f"checkpoints.dijkstra_cbf={missing}",
+        E.prepare(tiny_cfg("configurations=[full]", f"checkpoints.full={missing}"))
+    prep = E.prepare(tiny_cfg("configurations=[full,goal_seeking]", f"checkpoints.full={missing}",
                               "missing_checkpoints=skip"))  # fmt: skip
     assert list(prep.missing) == ["full"] and [u.row_name for u in E.plan_units(prep)] == ["goal_seeking"]
     with pytest.raises(E.EvalError, match="does not exist"):
-        E.prepare(tiny_cfg("configurations=[full]", f"checkpoints.dijkstra_cbf={missing}",
-                           "missing_checkpoints=skip"), explicit_checkpoints=("dijkstra_cbf",))  # fmt: skip
+        E.prepare(tiny_cfg("configurations=[full]", f"checkpoints.full={missing}",
+                           "missing_checkpoints=skip"), explicit_checkpoints=("full",))  # fmt: skip
     # A folder with training checkpoints but no export.
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "model_10.pt").write_bytes(b"x")
@@ -204,7 +204,7 @@ def test_exported_policy_loads_matches_torchscript_and_flies(tmp_path):
 
 def test_layout_mismatch_is_a_clear_error(tmp_path):
     export_fresh_policy(str(tmp_path / "ckpt"), state_dim=20)
-    cfg = tiny_cfg("configurations=[full]", f"checkpoints.dijkstra_cbf={tmp_path / 'ckpt'}")
+    cfg = tiny_cfg("configurations=[full]", f"checkpoints.full={tmp_path / 'ckpt'}")
     with pytest.raises(E.EvalError, match="state vector has 20 values, the env gives 21"):
         E.prepare(cfg)
 

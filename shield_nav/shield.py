@@ -477,6 +477,16 @@ class HOCBFShield:
         self._memory_head[vid] = (head + 1) % self.cfg.memory_steps
 
     # ------------------------------------------------------------------------------ batched
+    def filter_env(self, env, command: np.ndarray, ids: np.ndarray | None = None) -> ShieldOutput:  # noqa: ANN001
+        """Filter the commands (len(ids), 4) of a ``NavigationEnv``'s vehicles ``ids`` (all if None) on its state.
+
+        The state is the sensor's depth image with the body attitude, the env-local position and the velocity. The
+        evaluation's shielded rows and the shield in the training loop both call this, so they filter alike.
+        """
+        sel = slice(None) if ids is None else ids
+        return self.filter(command, env.local_pos[sel], env.vehicles.vel_w[sel], depth=env.sensor_depth_buf[sel],
+                           R_wb=env.vehicles.R_wb[sel], ids=ids)  # fmt: skip
+
     def filter(
         self,
         command: np.ndarray,

@@ -193,8 +193,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         step_active = np.zeros(n, dtype=bool)
         if shield is not None:
             li = np.flatnonzero(live)
-            out = shield.filter(cmd[li], env.local_pos[li], env.vehicles.vel_w[li],
-                                depth=env.sensor_depth_buf[li], R_wb=env.vehicles.R_wb[li], ids=li)  # fmt: skip
+            out = shield.filter_env(env, cmd[li], li)
             cmd[li] = out.command
             step_active[li] = out.active
             corr = np.linalg.norm(out.accel_safe - out.accel_raw, axis=1)

@@ -27,14 +27,12 @@ class ShieldInLoop:
     """
 
     def __init__(self, cfg: ShieldConfig, camera: CameraConfig) -> None:  # noqa: D107
-        cfg.validate("shield.")
         self.shield = HOCBFShield(cfg, camera)
 
     def __call__(self, env: NavigationEnv, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Commands (N, 4) after the shield for normalised ``actions`` (N, 4), and which of them it changed (N,)."""
         cmd = env.action_to_command(np.clip(actions, -1.0, 1.0))
-        out = self.shield.filter(cmd, env.local_pos, env.vehicles.vel_w, depth=env.sensor_depth_buf,
-                                 R_wb=env.vehicles.R_wb)  # fmt: skip
+        out = self.shield.filter_env(env, cmd)
         return out.command, out.active
 
     def reset(self, ids: np.ndarray) -> None:

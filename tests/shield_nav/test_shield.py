@@ -26,10 +26,12 @@ from shield_nav.shield import (
 )
 
 G = 9.81
-P4 = {"barrier": "distance", "alpha0": 16.0, "alpha1": 8.0, "lag_s": 0.0}
-"""The distance barrier at p1 = p2 = 4 /s without the lag (an earlier default), kept by the tests computed for it."""
-DIST = {"barrier": "distance"}
-"""The paper's |r|^2 barrier at the default gains (p1 = p2 = 8 /s): the tests of that barrier name it."""
+P4 = {"barrier": "distance", "alpha0": 16.0, "alpha1": 8.0, "lag_s": 0.0, "r_safe": 0.5}
+"""The distance barrier at p1 = p2 = 4 /s without the lag (an earlier default), kept by the tests computed for it
+(at the earlier default r_safe 0.5 m)."""
+DIST = {"barrier": "distance", "r_safe": 0.5}
+"""The paper's |r|^2 barrier at the default gains (p1 = p2 = 8 /s) and r_safe 0.5 m: the tests of that barrier,
+computed at that radius, name it."""
 
 
 def test_hocbf_row_hand_computed():
@@ -205,15 +207,16 @@ def test_scripted_flights_shield_prevents_collisions(kind):
     speeds = [3.0, 5.0, 7.0, 9.0]
     bare = fly(kind, speeds, shielded=False, duration=4.5)
     assert bare.collided.all()  # the naive controller crashes at every speed
-    safe = fly(kind, speeds, shielded=True, duration=4.5)
-    assert not safe.collided.any()
-    # Measured minimum 3-D distances over 4.5 s from the vehicle centre to the surface, pole / wall, default shield
-    # (braking barrier, a_b 8, lag 0.15 s): 0.51/0.51 at 3 m/s, 0.49/0.49 at 5, 0.48/0.48 at 7 and 9 (the distance
-    # barrier at p = 8: 0.53/0.53, 0.50/0.50, 0.41/0.40, 0.86/0.83, lifting the vehicle over the obstacle at 9).
-    # The controller keeps pushing, so the distance creeps towards r_safe = 0.5 m; assert r_safe minus 0.1 m (the
-    # point cloud's pixel sampling and what the one-lag prediction leaves of the lag), well clear of contact at 0.2 m.
-    assert np.all(safe.min_distance > 0.4)
-    assert safe.active.any(axis=0).all()
+    # Measured minimum 3-D distances over 4.5 s from the vehicle centre to the surface, pole / wall (braking barrier,
+    # a_b 8, lag 0.15 s), at 3 / 5 / 7 / 9 m/s: r_safe 0.5 m: 0.51 / 0.49 / 0.48 / 0.48 (both); the default r_safe
+    # 0.3 m: pole 0.30 / 0.28 / 0.25 / 0.24, wall 0.30 / 0.28 / 0.25 / 0.24. The controller keeps pushing, so the
+    # distance creeps towards r_safe; assert r_safe minus 0.1 m (the point cloud's pixel sampling and what the
+    # one-lag prediction leaves of the lag), and no contact (collision radius 0.2 m).
+    for r_safe in (0.5, ShieldConfig().r_safe):
+        safe = fly(kind, speeds, shielded=True, duration=4.5, shield_cfg=ShieldConfig(r_safe=r_safe))
+        assert not safe.collided.any()
+        assert np.all(safe.min_distance > r_safe - 0.1)
+        assert safe.active.any(axis=0).all()
 
 
 def test_selected_rows_equal_hocbf_rows_and_one_per_sector():
@@ -241,7 +244,7 @@ def test_ground_points_are_filtered_and_would_otherwise_trigger_level_flight():
     floor = np.stack((xs.ravel(), ys.ravel(), np.zeros(xs.size)), 1)
     cmd = np.array([[G, 0.0, 0.0, 0.0]])
     pos, vel = np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0.0, 0.0]])
-    gains = {"barrier": "distance", "alpha0": 4.0, "alpha1": 4.0, "lag_s": 0.0}
+    gains = {"barrier": "distance", "alpha0": 4.0, "alpha1": 4.0, "lag_s": 0.0, "r_safe": 0.5}
     on = HOCBFShield(ShieldConfig(**gains)).filter(cmd, pos, vel, points_w=[floor])
     off = HOCBFShield(ShieldConfig(**gains, z_window=[-1.0e9, 1.0e9])).filter(cmd, pos, vel, points_w=[floor])
     assert not on.active[0] and on.num_constraints[0] == 0
@@ -491,7 +494,7 @@ def test_lag_prediction_that_passes_a_point_keeps_the_current_row():
     point keeps its row at the current state instead. 0.2 m before a point at 1.5 m/s, lag 0.15 s, p1 = p2 = 6:
     the predicted state is 0.025 m beyond it, where the row reads 0.05 a_x >= 3.5775 (a_x >= 72 m/s^2, forward
     through the point). The current row, -0.4 a_x >= 10.26, brakes; the answer is the lag-free shield's."""
-    gains = {"barrier": "distance", "alpha0": 36.0, "alpha1": 12.0}
+    gains = {"barrier": "distance", "alpha0": 36.0, "alpha1": 12.0, "r_safe": 0.5}
     p, o, v = np.array([0.0, 0.0, 1.5]), np.array([[0.2, 0.0, 1.5]]), np.array([[1.5, 0.0, 0.0]])
     a_lag, b_lag = hocbf_rows(np.array([[0.025, 0.0, 0.0]]), v[0], 36.0, 12.0, 0.5)
     assert a_lag[0, 0] == pytest.approx(0.05) and b_lag[0] == pytest.approx(3.5775)
@@ -508,7 +511,7 @@ def test_lag_aware_shield_stays_clear_where_the_lag_free_one_hits(kind):
     p1 = p2 = 8 /s (later, harder corrections) the lag-free shield lets the vehicle hit the obstacle at 5 m/s
     (measured minimum distance 0.19 m to the pole's and the wall's surface, contact); with lag_s = 0.15 s the same
     gains stop it at 0.50 m. Both flights start 12 m away at 5 m/s."""
-    gains = {"barrier": "distance", "alpha0": 64.0, "alpha1": 16.0}
+    gains = {"barrier": "distance", "alpha0": 64.0, "alpha1": 16.0, "r_safe": 0.5}
     lag_free = fly(kind, [5.0], shielded=True, duration=4.5, shield_cfg=ShieldConfig(**gains, lag_s=0.0))
     lagged = fly(kind, [5.0], shielded=True, duration=4.5, shield_cfg=ShieldConfig(**gains, lag_s=0.15))
     assert lag_free.collided.all()
@@ -591,7 +594,7 @@ def test_braking_barrier_stops_a_head_on_approach_with_at_most_its_deceleration(
     cmd = np.array([[G, 0.0, 0.0, 0.0]])  # hover thrust, level: a_raw = 0
     results = {}
     for barrier in ("braking", "distance"):
-        shield = HOCBFShield(ShieldConfig(barrier=barrier, brake_accel=6.0, lag_s=0.0))
+        shield = HOCBFShield(ShieldConfig(barrier=barrier, brake_accel=6.0, lag_s=0.0, r_safe=0.5))
         pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
         peak_demand, d_min = 0.0, math.inf
         for _ in range(2000):  # 4 s in 2 ms steps (the barrier's discrete-time overshoot shrinks with the step)

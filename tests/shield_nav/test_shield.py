@@ -260,7 +260,7 @@ def test_point_memory_keeps_constraints_for_obstacles_that_left_the_view():
     pole = np.array([[1.5, 0.8, 1.5]])
     cmd = np.array([[G / math.cos(0.3), -0.3, 0.0, 0.0]])  # rolling left, towards +y
     vel = np.array([[0.5, 1.0, 0.0]])
-    plain = HOCBFShield()
+    plain = HOCBFShield(ShieldConfig(memory_steps=0))  # the paper: the current image only
     mem = HOCBFShield(ShieldConfig(memory_steps=10))
     for sh in (plain, mem):
         first = sh.filter(cmd, np.array([[0.0, 0.0, 1.5]]), vel, points_w=[pole])

@@ -88,8 +88,8 @@ class ShieldConfig:
     """HOCBF coefficient on Bdot [1/s]."""
     r_safe: float = 0.3
     """Safety radius [m] around every obstacle point: the vehicle's collision radius (0.2 m) plus 0.1 m of margin.
-    Chosen on the validation scenes behind the Full policy (docs/shield.md, "Safety radius"): a larger radius closes
-    the gaps a fast flight threads, and the vehicle stalls in front of them until the time limit."""
+    Chosen on the validation scenes behind the Full policy (docs/shield.md, "Safety radius"): with a larger radius
+    the shield brakes for points the flight would pass, and fast flights run out of time."""
     max_constraints: int = 8
     """K: obstacle constraints kept per step (the tightest sector minima, see ``select_constraints``)."""
     active_set_iterations: int = 8

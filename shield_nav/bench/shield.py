@@ -18,14 +18,14 @@ import qpsolvers
 
 from envs.camera import CameraConfig, depth_to_points
 from shield_nav.bench.common import emit, machine, parser
+from shield_nav.evaluation.config import BUILTIN_ROWS
 from shield_nav.scripted import fly
 from shield_nav.shield import HOCBFShield, ShieldConfig, accel_from_command
 
 PAPER = {"mean_us": 90.61, "max_us": 384.5, "active_fraction": 0.1306}
-PAPER_FORMULATION = {"barrier": "distance", "active_set_iterations": 0, "lag_s": 0.0, "alpha0": 16.0, "alpha1": 8.0,
-                     "memory_steps": 0, "r_safe": 0.5}
-"""The paper's shield as a switch: select once at the raw command, rows at the current state, the current image
-only, our first gains and radius."""
+PAPER_FORMULATION = dict(BUILTIN_ROWS["full_paper_shield"].shield_overrides)
+"""The paper's shield as a switch, the evaluation row ``full_paper_shield``'s overrides (configs/eval/rows.yaml): select
+once at the raw command, rows at the current state, the current image only, our first gains and radius."""
 
 
 def _stats(x: np.ndarray) -> dict:

@@ -28,6 +28,7 @@ from envs.camera import CameraConfig, depth_to_points
 from envs.config import require
 from shield_nav.shield_rows import (
     _accel_from_command_1,
+    _append_remembered,
     _command_from_accel_1,
     _min_margin,
     _rows_min_margin,
@@ -260,6 +261,9 @@ class HOCBFShield:
         self._memory: dict[int, np.ndarray] = {}  # vehicle id -> (memory_steps * K, 3) ring of points (NaN: empty)
         self._memory_head: dict[int, int] = {}
         self._prev_vel: dict[int, np.ndarray] = {}  # vehicle id -> velocity at its previous call (lag_s)
+        # One image's points followed by the remembered ones, written in place (no per-step allocation or copy).
+        cam = self.camera
+        self._cloud = np.empty((cam.height * cam.width + cfg.memory_steps * cfg.max_constraints, 3))
         self._r_buf = np.zeros((cfg.max_constraints, 3))
         self._b_buf = np.zeros(cfg.max_constraints)
         self._min_buf = np.zeros(1)
@@ -531,11 +535,19 @@ class HOCBFShield:
             t0 = time.perf_counter()
             _accel_from_command_1(cmd[i, 0], cmd[i, 1], cmd[i, 2], cmd[i, 3], g, self._a_buf)
             a_raw[i] = self._a_buf
-            if depth is not None:
-                pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel or None)
-            else:
-                pts = points_w[i]
             vid = int(ids[i]) if ids is not None else i
+            ring = self._memory.get(vid) if self.cfg.memory_steps > 0 else None
+            if depth is not None and not self.cfg.voxel:
+                pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, out=self._cloud)
+                if ring is not None:  # the remembered points go right after the image's, in the same buffer
+                    pts = self._cloud[: _append_remembered(ring, self._cloud, len(pts))]
+            else:
+                if depth is not None:
+                    pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel)
+                else:
+                    pts = np.asarray(points_w[i], dtype=np.float64).reshape(-1, 3)
+                if ring is not None:
+                    pts = np.concatenate((pts, ring[~np.isnan(ring[:, 0])]))
             p_i, v_i = pos_w[i], vel_w[i]
             lagged = None
             if lag > 0.0:
@@ -544,12 +556,6 @@ class HOCBFShield:
                 a0 = _ZERO3 if v_prev is None else (v_i - v_prev) / self.cfg.control_dt
                 self._prev_vel[vid] = np.array(v_i, dtype=np.float64)
                 lagged = (p_i + lag * v_i + 0.5 * lag * lag * a0, v_i + lag * a0)
-            if self.cfg.memory_steps > 0:
-                ring = self._memory.get(vid)
-                if ring is not None:
-                    pts = np.concatenate(
-                        (np.asarray(pts, dtype=np.float64).reshape(-1, 3), ring[~np.isnan(ring[:, 0])])
-                    )
             r_sel, a_mat, b_vec = self.constraints(pts, p_i, v_i, self._a_buf, lagged)
             if self.cfg.memory_steps > 0:
                 self._remember(vid, self._o_buf[: len(r_sel)])

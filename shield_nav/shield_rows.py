@@ -417,3 +417,14 @@ def _rows_min_margin(rows: np.ndarray, n: int, a: np.ndarray, out_row: np.ndarra
         out_row[0], out_row[1], out_row[2], out_row[3] = (rows[best_i, j], rows[best_i, j + 1], rows[best_i, j + 2],
                                                           rows[best_i, j + 3])  # fmt: skip
     return best
+
+
+@nb.njit(cache=True, nogil=True)
+def _append_remembered(ring: np.ndarray, out: np.ndarray, m: int) -> int:
+    """Copy the filled rows of a point-memory ring (NaN x: empty) into ``out`` from row ``m``; return the new count."""
+    for i in range(ring.shape[0]):
+        x = ring[i, 0]
+        if x == x:  # not NaN
+            out[m, 0], out[m, 1], out[m, 2] = x, ring[i, 1], ring[i, 2]
+            m += 1
+    return m

@@ -113,7 +113,12 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 def depth_to_points(
-    depth: np.ndarray, pos_w: np.ndarray, R_wb: np.ndarray, cfg: CameraConfig, voxel: float | None = None
+    depth: np.ndarray,
+    pos_w: np.ndarray,
+    R_wb: np.ndarray,
+    cfg: CameraConfig,
+    voxel: float | None = None,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """World-frame points (M, 3) float64 seen in one depth image.
 
@@ -127,6 +132,8 @@ def depth_to_points(
         R_wb: Body-to-world rotation (3, 3).
         cfg: The camera configuration the image was rendered with.
         voxel: If given, return one point (the centroid) per occupied voxel of this edge length (m).
+        out: Optional float64 buffer (at least H*W rows, 3) the points are written to; the result is then a view of
+            its first M rows (no allocation per image; the caller may fill the rows after M). Not with ``voxel``.
 
     Returns:
         Points (M, 3), float64.
@@ -139,7 +146,10 @@ def depth_to_points(
     if not (np.isfinite(pos).all() and np.isfinite(R).all()):
         raise ValueError("depth_to_points: camera pose must be finite")
     x_u, y_v, Rbc = _grid(cfg)
-    out = np.empty((d.size, 3))
+    if out is None:
+        out = np.empty((d.size, 3))
+    elif voxel is not None or out.dtype != np.float64 or out.ndim != 2 or out.shape[0] < d.size or out.shape[1] != 3:
+        raise ValueError(f"out must be a float64 (>= {d.size}, 3) buffer and voxel None, got {out.dtype} {out.shape}")
     mount = np.asarray(cfg.mount_pos_b, dtype=np.float64)
     m = _backproject(d, pos, R, mount, Rbc, x_u, y_v, float(cfg.max_range), out)
     pts = out[:m]

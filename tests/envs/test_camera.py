@@ -289,6 +289,14 @@ def test_points_drop_invalid_pixels_and_voxels_average():
     order = np.lexsort(np.floor(vox / 0.5).T[::-1])
     assert np.allclose(vox[order], centroids)
     assert voxel_downsample(np.zeros((0, 3)), 0.1).shape == (0, 3)
+    # A caller's buffer: the same points, written to its head, the rows after them untouched.
+    buf = np.full((6000 + 10, 3), 7.0)
+    into = depth_to_points(depth, np.zeros(3), np.eye(3), cfg, out=buf)
+    assert np.shares_memory(into, buf) and np.array_equal(into, pts) and np.all(buf[len(pts) :] == 7.0)
+    with pytest.raises(ValueError, match="out must be"):
+        depth_to_points(depth, np.zeros(3), np.eye(3), cfg, out=np.empty((100, 3)))
+    with pytest.raises(ValueError, match="out must be"):
+        depth_to_points(depth, np.zeros(3), np.eye(3), cfg, voxel=0.5, out=buf)
 
 
 # ----------------------------------------------------------------------------- PNG helpers

@@ -276,6 +276,29 @@ def test_point_memory_keeps_constraints_for_obstacles_that_left_the_view():
     assert mem.filter(cmd, pos2, vel, points_w=[np.zeros((0, 3))]).num_constraints[0] == 0
 
 
+def test_point_memory_from_depth_matches_the_same_points_given_as_a_list():
+    from envs.camera import depth_to_points
+
+    # The depth path appends the remembered points in place after the image's; the point-list path concatenates.
+    # Fed the same clouds (the images' own back-projections) over a flight past a box, both filter alike.
+    cam = CameraConfig()
+    camera = DepthCamera(cam, [[Box((3.0, -0.8, 1.5), (0.3, 0.3, 1.5))]])
+    by_depth, by_list = HOCBFShield(ShieldConfig(), cam), HOCBFShield(ShieldConfig(), cam)
+    cmd = np.array([[G / math.cos(0.2), 0.2, -0.3, 0.0]])  # rolling right, towards the box
+    remembered, active = 0, 0
+    for k in range(35):
+        pos, vel, r_wb = np.array([[0.1 * k, -0.012 * k, 1.5]]), np.array([[3.0, -0.36, 0.0]]), np.eye(3)[None]
+        depth = camera.render(pos, r_wb)
+        a = by_depth.filter(cmd, pos, vel, depth=depth, R_wb=r_wb)
+        pts = depth_to_points(depth[0], pos[0], r_wb[0], cam)
+        b = by_list.filter(cmd, pos, vel, points_w=[pts])
+        np.testing.assert_array_equal(a.command, b.command)
+        assert a.num_constraints[0] == b.num_constraints[0]
+        remembered = max(remembered, int(np.sum(~np.isnan(by_depth._memory[0][:, 0]))))
+        active += int(a.active[0])
+    assert remembered > 0 and active > 0
+
+
 def test_ground_row_hand_computed_and_projection():
     # Descending at 2 m/s, 0.5 m high, min_altitude 0.35, alpha0 16, alpha1 8: b = -8 (-2) - 16 (0.15) = 13.6.
     assert ground_row(0.5, -2.0, 16.0, 8.0, 0.35) == pytest.approx(13.6)

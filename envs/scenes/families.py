@@ -303,6 +303,20 @@ def _gen_dynamic(rng: np.random.Generator, index: int, u: float) -> dict:
     return {"primitives": tuple(prims), "moving": tuple(moving)}
 
 
+TRAIN_PERLIN_FIELDS = 8
+"""``train_shapes_perlin``: indices ``16 .. 23`` are Perlin-noise fields (occupancy rising), ``0 .. 15`` all-shapes."""
+
+
+def _gen_train_shapes_perlin(rng: np.random.Generator, index: int, u: float) -> dict:
+    # Not the paper's training set: the all-shapes levels (the train_shapes generator, its own random stream) plus
+    # the benchmark's second kind of scene, Perlin-noise fields of full-height box columns, at training seeds. Meant
+    # for uniform sampling (curriculum off): the indices are two difficulty ramps, not one.
+    n_shapes = 16
+    if index < n_shapes:
+        return _gen_train_shapes(rng, index, index / (n_shapes - 1))
+    return _gen_perlin(rng, (index - n_shapes) / (TRAIN_PERLIN_FIELDS - 1))
+
+
 FOREST_LO, FOREST_HI = (0.0, -16.0, 0.0), (100.0, 16.0, 4.0)
 
 
@@ -328,6 +342,11 @@ FAMILIES: dict[str, Family] = {
             "train_shapes", 16, "train", 0, 6,
             "16 training levels over every obstacle kind (not the paper's training set), density rising",
             _gen_train_shapes,
+        ),
+        Family(
+            "train_shapes_perlin", 16 + TRAIN_PERLIN_FIELDS, "train", 0, 9,
+            "train_shapes' 16 levels plus 8 Perlin-noise fields (occupancy rising), for uniform sampling; not the "
+            "paper's training set", _gen_train_shapes_perlin,
         ),
         Family(
             "ablation", 8, "eval", 1_000_000, 2,

@@ -6,7 +6,7 @@ solver: QP time over the steps where the shield was active (mean, p99, max) and 
 point-cloud + constraint-selection cost and the whole shield step (point cloud, selection, QP, conversion back).
 ``formulations`` compares, in the same run, the whole step and the QP of the default shield against the paper's
 formulation (``PAPER_FORMULATION``: one-shot selection, no lag, p1 = p2 = 4 /s), since absolute CPU times move
-2-3x between machines of this kind.
+2-3x between machines of this kind; the two replay the states in lockstep, so a slow spell hits both alike.
 """
 
 from __future__ import annotations
@@ -68,6 +68,31 @@ def replay(shield: HOCBFShield, states: list, repeats: int) -> tuple[np.ndarray,
     return np.array(solve), np.array(total), np.array(active)
 
 
+def replay_interleaved(
+    shields: dict[str, HOCBFShield], states: list, repeats: int
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``replay`` for several shields in lockstep: each recorded state goes through every shield in turn.
+
+    A slow spell of the machine (another tenant, a frequency change) then lands on all of them alike, so their
+    ratio holds where two back-to-back replays of a few seconds each drift apart by tens of per cent.
+    """
+    acc = {name: ([], [], []) for name in shields}
+    for rep in range(repeats + 1):
+        for sh in shields.values():
+            sh.reset()
+        for pos, vel, r_wb, cmd, depth, vid in states:
+            for name, sh in shields.items():
+                out = sh.filter(cmd, pos, vel, depth=depth, R_wb=r_wb, ids=vid)
+                if rep == 0:
+                    continue  # warm-up pass
+                solve, total, active = acc[name]
+                active.append(bool(out.active[0]))
+                total.append(out.total_us[0])
+                if out.active[0]:
+                    solve.append(out.solve_us[0])
+    return {name: tuple(np.array(x) for x in v) for name, v in acc.items()}
+
+
 def main(argv: list[str]) -> dict:
     """Record, then replay the states through each installed solver."""
     p = parser("shield", __doc__.splitlines()[0])
@@ -88,8 +113,11 @@ def main(argv: list[str]) -> dict:
         if not args.json:
             print(row)
     formulations = {}
-    for name, cfg in (("default", ShieldConfig()), ("paper", ShieldConfig(**PAPER_FORMULATION))):
-        solve, total, active = replay(HOCBFShield(cfg, cam), states, args.repeats)
+    shields = {
+        "default": HOCBFShield(ShieldConfig(), cam),
+        "paper": HOCBFShield(ShieldConfig(**PAPER_FORMULATION), cam),
+    }
+    for name, (solve, total, active) in replay_interleaved(shields, states, args.repeats).items():
         formulations[name] = {"qp": _stats(solve), "whole_step": _stats(total),
                               "active_fraction": round(float(np.mean(active)), 4)}  # fmt: skip
     formulations["whole_step_mean_ratio"] = round(

@@ -27,7 +27,7 @@ from envs.scenes.sdf import primitive_sdf, union_sdf
 def test_family_sizes_match_the_paper():
     assert {k: f.size for k, f in FAMILIES.items()} == {
         "train": 16, "train_shapes": 16, "ablation": 8, "benchmark": 16, "dynamic": 4, "forest": 4, "traps": 8,
-        "train_traps": 16,
+        "train_traps": 16, "train_shapes_perlin": 24,
     }  # fmt: skip
 
 
@@ -130,9 +130,24 @@ def test_benchmark_has_12_geometric_and_4_perlin_scenes():
             assert {"cylinder", "box"} <= kinds
 
 
+def test_train_shapes_perlin_is_the_all_shapes_levels_then_perlin_fields():
+    # Indices 0-15 come from the all-shapes generator (its own random stream: the same kinds and counts as
+    # train_shapes at that level), 16-23 are fields of box columns whose occupancy rises with the index.
+    for i in (0, 9, 15):
+        mixed, shapes = make_scene("train_shapes_perlin", i), make_scene("train_shapes", i)
+        assert mixed.digest() != shapes.digest()
+        assert abs(len(mixed.primitives) - len(shapes.primitives)) <= 0.1 * len(shapes.primitives) + 2
+    fields = [make_scene("train_shapes_perlin", i) for i in range(16, 24)]
+    assert all({p.kind for p in s.primitives} == {"box"} for s in fields)
+    volume = [sum(8 * np.prod(p.half) for p in s.primitives) for s in fields]
+    assert volume[-1] > volume[0]
+    with pytest.raises(ValueError, match="seed range"):
+        make_scene("train_shapes_perlin", 16, seed=EVAL_SEEDS.start)
+
+
 def test_train_and_eval_seeds_are_disjoint_and_enforced():
     assert set(TRAIN_SEEDS).isdisjoint(range(EVAL_SEEDS.start, EVAL_SEEDS.stop))
-    training = {"train", "train_shapes", "train_traps"}
+    training = {"train", "train_shapes", "train_traps", "train_shapes_perlin"}
     for name, fam in FAMILIES.items():
         allowed = TRAIN_SEEDS if name in training else EVAL_SEEDS
         assert fam.default_seed in allowed and (fam.split == "train") == (name in training)

@@ -692,3 +692,19 @@ def test_kept_braking_rows_give_the_cloud_check_exactly():
     p, v, pts, cmd = next(iter(_random_clouds(1, 7)))
     distance.constraints(pts, p, v, accel_from_command(cmd)[0])
     assert distance._rows_n[0] == -1  # the distance barrier keeps no rows: its check recomputes them
+
+
+def test_bench_lockstep_replay_filters_each_shield_as_alone():
+    # The cost bench replays the recorded states through two shields in turn; each keeps its own memory and
+    # velocity history, so its activity and corrections are those of a replay on its own.
+    from shield_nav.bench.shield import PAPER_FORMULATION, record, replay, replay_interleaved
+
+    states = record(duration=0.6)
+    cfgs = {"default": ShieldConfig(), "paper": ShieldConfig(**PAPER_FORMULATION)}
+    both = replay_interleaved({k: HOCBFShield(c) for k, c in cfgs.items()}, states, repeats=1)
+    for name, cfg in cfgs.items():
+        _, total, active = replay(HOCBFShield(cfg), states, repeats=1)
+        assert len(both[name][1]) == len(total) == len(states)
+        np.testing.assert_array_equal(both[name][2], active)
+    assert both["default"][2].any() and both["paper"][2].any()
+    assert not np.array_equal(both["default"][2], both["paper"][2])

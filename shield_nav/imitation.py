@@ -85,12 +85,16 @@ def measure(
         raise ValueError(f"{path}: the checkpoint was not distilled from a scripted expert (runner.expert.kind)")
     if not 0 <= level < len(cfg.env.scenes.indices):
         raise ValueError(f"level must be in [0, {len(cfg.env.scenes.indices)}), got {level}")
+    scene = cfg.env.scenes.indices[level]
     cfg.env.num_envs = num_envs
     cfg.env.episode.target_speeds = [float(speed)]
     cfg.env.episode.speed_range = []
     cfg.env.seed = seed  # starts, goals and randomization
+    # The env holds this one scene, so every episode flies it whether or not the checkpoint trained with the
+    # curriculum (without it, setting the level alone left resets to sample the whole list).
+    cfg.env.scenes.indices = [scene]
     env = make_env(cfg)
-    env.set_curriculum_levels([level] * num_envs)
+    env.set_curriculum_levels([0] * num_envs)
     obs = env.get_observations()
     student, expert = [], []
     with torch.no_grad():
@@ -101,7 +105,8 @@ def measure(
             obs, _, dones, _ = env.step(act)
             model.reset(dones)
     out = gap_metrics(np.array(student), np.array(expert))
-    out.update(checkpoint=path, iteration=meta["iter"], speed=speed, level=level, steps=steps, num_envs=num_envs)
+    out.update(checkpoint=path, iteration=meta["iter"], speed=speed, level=level, steps=steps, num_envs=num_envs,
+               scene=f"{cfg.env.scenes.family}/{scene}")
     return out
 
 
@@ -139,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(res))
     else:
-        print(f"{res['checkpoint']} (iteration {res['iteration']}), {res['speed']:g} m/s, level {res['level']}, "
+        print(f"{res['checkpoint']} (iteration {res['iteration']}), {res['speed']:g} m/s, level {res['level']} "
+              f"({res['scene']}), "
               f"{res['samples']} samples: MSE {res['mse']:.4f}")  # fmt: skip
         print(format_table(res))
     return 0

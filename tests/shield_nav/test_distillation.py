@@ -372,3 +372,39 @@ def test_imitation_cli_on_the_committed_student():
     res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_imitation_flies_the_requested_level_when_the_checkpoint_trained_without_curriculum(monkeypatch):
+    # A student trained with the curriculum off (scenes sampled uniformly per episode) used to be measured on every
+    # scene of its list whatever --level said: resets ignored the level. Every episode must be on scene indices[k].
+    import shield_nav.package as package
+    import shield_nav.training as training
+    from shield_nav.imitation import measure
+
+    real_load, real_make = package.actor_from_checkpoint, training.make_env
+
+    def load_uniform(path):
+        model, cfg, meta = real_load(path)
+        cfg.env.curriculum.enabled = False
+        cfg.env.scenes.indices = [3, 5, 7]
+        return model, cfg, meta
+
+    seen = []
+
+    def make_recording(cfg):
+        env = real_make(cfg)
+        step = env.step
+
+        def recording_step(actions):
+            out = step(actions)
+            seen.append([env.env.scenes[int(i)].index for i in env.env.scene_id_buf])
+            return out
+
+        env.step = recording_step
+        return env
+
+    monkeypatch.setattr(package, "actor_from_checkpoint", load_uniform)
+    monkeypatch.setattr(training, "make_env", make_recording)
+    out = measure("checkpoints/student", level=2, steps=40, num_envs=4)
+    assert {s for step in seen for s in step} == {7}
+    assert out["scene"] == "train_shapes/7" and out["samples"] == 160

@@ -145,8 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(res))
     else:
         print(f"{res['checkpoint']} (iteration {res['iteration']}), {res['speed']:g} m/s, level {res['level']} "
-              f"({res['scene']}), "
-              f"{res['samples']} samples: MSE {res['mse']:.4f}")  # fmt: skip
+              f"({res['scene']}), {res['samples']} samples: MSE {res['mse']:.4f}")  # fmt: skip
         print(format_table(res))
     return 0
 

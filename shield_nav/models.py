@@ -110,6 +110,11 @@ class DepthEncoder(nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
                 nn.init.zeros_(m.bias)
+        # Channels-last filters make oneDNN run the whole stack in NHWC: the encoder's forward + backward is 1.7x
+        # faster at 128 images and 2.2x at 1,024 on this 2-core CPU (docs/training.md). Same values up to float
+        # summation order; state dicts, optimiser state, ``.to(device)`` and copies keep the layout, and
+        # checkpoints written before it load unchanged (``load_state_dict`` copies into these tensors).
+        self.conv.to(memory_format=torch.channels_last)
 
     def forward(self, depth: torch.Tensor) -> torch.Tensor:
         """Encode images ``(B, C, H, W)`` into features ``(B, feature_dim)``."""

@@ -46,7 +46,9 @@ def main(argv: list[str] | None = None) -> dict:
     env = make_env(cfg)
     build_s = time.perf_counter() - t0
     runner = make_runner(env, cfg, log_dir=None, device=cfg.device)
-    if cfg.runner.class_name == "DistillationRunner":
+    if cfg.runner.class_name == "DistillationRunner" and cfg.runner.expert.kind:
+        runner.alg.teacher_loaded = True  # a scripted expert (train.py does the same): no weights to load
+    elif cfg.runner.class_name == "DistillationRunner":
         runner.load(cfg.runner.teacher_checkpoint)
     actor = runner.alg.get_policy()
     critic = getattr(runner.alg, "critic", None)  # PPO's; distillation has none
@@ -70,7 +72,8 @@ def main(argv: list[str] | None = None) -> dict:
         "num_envs": cfg.env.num_envs,
         "num_steps_per_env": cfg.runner.num_steps_per_env,
         "num_learning_epochs": cfg.runner.algorithm.num_learning_epochs,
-        "num_mini_batches": cfg.runner.algorithm.num_mini_batches,
+        "num_mini_batches": getattr(cfg.runner.algorithm, "num_mini_batches", None),  # PPO only
+        "runner": cfg.runner.class_name,
         "iterations": len(measured),
         "collect_s": round(collect_s, 3),
         "learn_s": round(learn_s, 3),

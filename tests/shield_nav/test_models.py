@@ -287,3 +287,37 @@ def test_expand_single_head_starts_every_candidate_as_the_single_head():
     assert (h[:, 0] - h[:, 1]).abs().max() > 1e-3 and torch.equal(multi.last_scores, torch.zeros(3, 3))
     with pytest.raises(ValueError, match="not a single-head"):
         expand_single_head(multi.state_dict(), multi)
+
+
+def test_encoder_runs_channels_last_with_the_values_of_a_plain_nchw_stack():
+    """The filters are stored channels-last (the speed-up); the features equal an NCHW re-computation.
+
+    Reference: the same weights copied into contiguous (NCHW) tensors and applied with ``F.conv2d`` /
+    ``F.max_pool2d`` / ``F.linear`` in float64, so only float summation order may differ. A state dict saved by
+    an NCHW encoder (every checkpoint before the change) loads without changing the layout.
+    """
+    import torch.nn.functional as F
+
+    torch.manual_seed(0)
+    enc = DepthEncoder((60, 100), 1, [8, 16, 32], [4, 3, 3], [4, 1, 1], [False, True, True], 64)
+    convs = [m for m in enc.conv if isinstance(m, torch.nn.Conv2d)]
+    assert all(c.weight.is_contiguous(memory_format=torch.channels_last) for c in convs[1:])  # C_in > 1
+    x = torch.rand(5, 1, 60, 100, generator=torch.Generator().manual_seed(1))
+    h = x.double()
+    for conv, pool in zip(convs, [False, True, True], strict=True):
+        w, b = conv.weight.detach().contiguous().double(), conv.bias.detach().double()
+        h = F.relu(F.conv2d(h, w, b, stride=conv.stride, padding=conv.padding))
+        h = F.max_pool2d(h, 2) if pool else h
+    lin = enc.proj[1]
+    ref = F.relu(F.linear(h.flatten(1), lin.weight.detach().double(), lin.bias.detach().double()))
+    with torch.no_grad():
+        got = enc(x)
+    assert got.shape == (5, 64)
+    assert torch.allclose(got.double(), ref, atol=1e-5, rtol=1e-5)
+
+    plain = {k: v.contiguous() for k, v in enc.state_dict().items()}  # NCHW copies, as older checkpoints hold
+    other = DepthEncoder((60, 100), 1, [8, 16, 32], [4, 3, 3], [4, 1, 1], [False, True, True], 64)
+    other.load_state_dict(plain)
+    assert other.conv[2].weight.is_contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        assert torch.allclose(other(x), got, atol=1e-6)

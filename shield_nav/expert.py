@@ -1,6 +1,7 @@
 """The privileged planning expert: geodesic path, braking-aware speed profile, lag-anticipating tracker.
 
-Every control step, for every env at once (numpy over envs, a short loop over path samples):
+Every control step, for every env at once (the path trace is one numba pass over envs and path samples, the
+rest numpy over envs):
 
 1. **Path.** From the vehicle's position, trace ``K = horizon / ds`` steps of length ``ds`` down the geodesic field
    of the episode's goal anchor, built with obstacles inflated by ``field_radius`` (so the shortest paths keep that
@@ -35,9 +36,11 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numba
 import numpy as np
 
 from envs.config import require
+from envs.fields.lookup import trilinear_point
 from shield_nav.tracking import accel_to_command
 
 
@@ -142,6 +145,71 @@ class ExpertConfig:
         require(self.visibility in VISIBILITIES, f"{prefix}visibility", f"unknown visibility {self.visibility!r}; "
                 f"expected one of {VISIBILITIES}")  # fmt: skip
         require(self.los_step > 0, f"{prefix}los_step", f"must be > 0, got {self.los_step}")
+
+
+@numba.njit(cache=True, fastmath=False)
+def _unit3(x: float, y: float, z: float) -> tuple[float, float, float]:
+    n = max(math.sqrt(x * x + y * y + z * z), 1e-9)
+    return x / n, y / n, z / n
+
+
+@numba.njit(cache=True, fastmath=False)
+def _phi_at(i: int, x: float, y: float, z: float, fallback: np.ndarray, p: tuple, q: tuple, g: np.ndarray) -> float:
+    """Phi of env ``i`` at one point: the inflated field ``p``, or the narrow field ``q`` where ``fallback[i]``.
+
+    ``g`` is any (M, 3) array (the lookup's unused gradient argument must type as one).
+    """
+    f = q if fallback[i] else p
+    return trilinear_point(f[0][i], x, y, z, f[1], f[2], f[3], f[4], f[5], g, f[5], False, False, True)[4]
+
+
+@numba.njit(cache=True, fastmath=False, parallel=True)
+def _trace_kernel(
+    x0: np.ndarray,
+    goal: np.ndarray,
+    fallback: np.ndarray,
+    k_steps: int,
+    h: float,
+    ds: float,
+    clearance_gain: float,
+    d_pref: float,
+    goal_switch: float,
+    momentum: float,
+    e: tuple,
+    p: tuple,
+    q: tuple,
+    path: np.ndarray,
+    clear: np.ndarray,
+) -> None:
+    """The path trace of :meth:`PlannerController.trace` for every env, envs split over numba's threads.
+
+    Fields are tuples ``(index (N,), offset, shape, origin, res, values)``; ``e`` holds the ESDF and then its gradient.
+    """
+    for i in numba.prange(x0.shape[0]):  # envs are independent: numba's threads split them
+        x, y, z = x0[i, 0], x0[i, 1], x0[i, 2]
+        px = py = pz = 0.0
+        for k in range(k_steps + 1):
+            path[i, k, 0], path[i, k, 1], path[i, k, 2] = x, y, z
+            d, gx, gy, gz, _ = trilinear_point(e[0][i], x, y, z, e[1], e[2], e[3], e[4], e[5], e[6], e[5],
+                                               True, True, False)  # fmt: skip
+            clear[i, k] = d
+            if k == k_steps:
+                break
+            ux, uy, uz = _unit3(
+                -(_phi_at(i, x + h, y, z, fallback, p, q, e[6]) - _phi_at(i, x - h, y, z, fallback, p, q, e[6])),
+                -(_phi_at(i, x, y + h, z, fallback, p, q, e[6]) - _phi_at(i, x, y - h, z, fallback, p, q, e[6])),
+                -(_phi_at(i, x, y, z + h, fallback, p, q, e[6]) - _phi_at(i, x, y, z - h, fallback, p, q, e[6])),
+            )
+            gx, gy, gz = _unit3(gx, gy, gz)
+            gu = gx * ux + gy * uy + gz * uz
+            w = clearance_gain * min(max(d_pref - d, 0.0), d_pref) / d_pref
+            ux, uy, uz = _unit3(ux + w * (gx - gu * ux), uy + w * (gy - gu * uy), uz + w * (gz - gu * uz))
+            if _phi_at(i, x, y, z, fallback, p, q, e[6]) < goal_switch:
+                ux, uy, uz = _unit3(goal[i, 0] - x, goal[i, 1] - y, goal[i, 2] - z)
+            if k > 0 and momentum > 0:
+                ux, uy, uz = _unit3(ux + momentum * px, uy + momentum * py, uz + momentum * pz)
+            px, py, pz = ux, uy, uz
+            x, y, z = x + ds * ux, y + ds * uy, z + ds * uz
 
 
 TRACKERS = ("chord", "tangent")
@@ -278,64 +346,50 @@ class PlannerController:
             return anchors.geodesic(ids, anchor, pts)
         return stack.geodesic(ids, pts)
 
-    def _phi7(self, env: Any, fallback: np.ndarray, ids7: np.ndarray, anchor7: np.ndarray,
-              pts: np.ndarray) -> np.ndarray:  # fmt: skip
-        """Phi at 7 points per env (N*7, 3) -> (N, 7), from the narrow field where ``fallback`` (N,) is set."""
-        n = len(fallback)
-        if not fallback.any():
-            return self._phi(env, ids7, anchor7, pts).reshape(n, 7)
-        out = np.empty((n, 7))
-        m7 = np.repeat(fallback, 7)
-        if (~fallback).any():
-            out[~fallback] = self._phi(env, ids7[~m7], anchor7[~m7], pts[~m7]).reshape(-1, 7)
-        out[fallback] = self._phi(env, ids7[m7], anchor7[m7], pts[m7], own=False).reshape(-1, 7)
-        return out
-
     # ------------------------------------------------------------------------------------------------ planning
+    def _phi_fields(self, env: Any, ids: np.ndarray, anchor: np.ndarray, own: bool = True) -> tuple:
+        """The fields :meth:`_phi` reads, as ``(index (N,), offset, shape, origin, res, phi)`` for a kernel."""
+        stack, anchors, narrow = self._fields(env)
+        if not own:
+            stack, anchors = env.field_stack, (narrow if narrow is not None else env.anchor_fields)
+        f = anchors.kernel_fields(ids, anchor) if anchors is not None else stack.kernel_fields(ids)
+        return f[0], f[1], f[2], f[3], f[4], f[7]
+
     def trace(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Paths (N, K+1, 3) from every vehicle down the inflated geodesic field, and their ESDF (N, K+1)."""
+        """Paths (N, K+1, 3) from every vehicle down the inflated geodesic field, and their ESDF (N, K+1).
+
+        One numba pass over envs and path samples (``_trace_kernel``); the per-step rule is the module docstring's.
+        """
         ec = self.ec
         n = env.num_envs
         ids, anchor = env.scene_id_buf, env.anchor_buf
-        goal = env.goal_buf
         k_steps = int(math.ceil(ec.horizon / ec.ds))
         h = ec.fd_step
-        offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
-        ids6, anchor6 = np.repeat(ids, 7), np.repeat(anchor, 7)
-        path = np.empty((n, k_steps + 1, 3))
-        clear = np.empty((n, k_steps + 1))
-        x = env.local_pos.astype(np.float64).copy()
-        prev: np.ndarray | None = None
+        x = env.local_pos.astype(np.float64)
+        if not np.isfinite(x).all():
+            bad = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
+            raise ValueError(f"PlanningExpert.trace: env {bad} has a non-finite position {x[bad].tolist()}")
         # Where the inflation closes every way to the goal, the inflated Phi is flat (capped at its unreachable
         # value): those envs descend the narrow field instead (the vehicle radius, clearance-weighted).
+        offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
         pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
-        phi0 = self._phi(env, ids6, anchor6, pts).reshape(n, 7)
+        phi0 = self._phi(env, np.repeat(ids, 7), np.repeat(anchor, 7), pts).reshape(n, 7)
         slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
         fallback = slope < ec.flat_slope
         self.fallback = fallback
-        for k in range(k_steps + 1):
-            path[:, k] = x
-            d, grad_d, _ = env.field_stack.query(ids, x, geodesic=False)
-            clear[:, k] = d
-            if k == k_steps:
-                break
-            if k == 0 and not fallback.any():
-                phi = phi0  # the same 7 points were just queried to choose the field
-            else:
-                pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
-                phi = self._phi7(env, fallback, ids6, anchor6, pts)
-            u = -_unit(phi[:, 1:4] - phi[:, 4:7])
-            g = _unit(grad_d)
-            g_perp = g - np.einsum("nc,nc->n", g, u)[:, None] * u
-            w = ec.clearance_gain * np.clip(ec.d_pref - d, 0.0, ec.d_pref) / ec.d_pref
-            u = _unit(u + w[:, None] * g_perp)
-            near = phi[:, 0] < ec.goal_switch
-            if near.any():
-                u[near] = _unit(goal[near] - x[near])
-            if prev is not None and ec.momentum > 0:
-                u = _unit(u + ec.momentum * prev)
-            prev = u
-            x = x + ec.ds * u
+        p = self._phi_fields(env, ids, anchor)
+        q = p
+        if fallback.any():  # the narrow field is built only for the envs that descend it
+            qf = self._phi_fields(env, ids[fallback], anchor[fallback], own=False)
+            index = np.zeros(n, dtype=np.int64)
+            index[fallback] = qf[0]
+            q = (index, *qf[1:])
+        ef = env.field_stack.kernel_fields(ids)
+        path = np.empty((n, k_steps + 1, 3))
+        clear = np.empty((n, k_steps + 1))
+        _trace_kernel(x, np.ascontiguousarray(env.goal_buf, dtype=np.float64), fallback, k_steps, h, ec.ds,
+                      ec.clearance_gain, ec.d_pref, ec.goal_switch, ec.momentum, (ef[0], *ef[1:7]), p, q, path,
+                      clear)  # fmt: skip
         if ec.smooth_window > 1:
             path, clear = self._smooth(env, path, clear)
         return path, clear

@@ -230,6 +230,19 @@ class GoalAnchorFields:
         d[~self.valid[scene_ids]] = np.inf
         return np.argmin(d, axis=1)
 
+    def kernel_fields(self, scene_ids: np.ndarray, anchor_ids: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(index (N,), offset, shape, origin, res, esdf, grad, phi)`` for ``trilinear_point`` in a kernel.
+
+        Builds the (scene, anchor) fields named first; ``index`` is each entry's field, ``esdf`` and ``grad`` are
+        empty (these fields hold Phi only).
+        """
+        ids = (np.asarray(scene_ids, dtype=np.int64) * self.count + np.asarray(anchor_ids, dtype=np.int64)).ravel()
+        if ids.size and (ids.min() < 0 or ids.max() >= self._ready.size):
+            raise ValueError(f"(scene, anchor) pair out of range: {self.num_scenes} scenes x {self.count} anchors")
+        if not self._ready[ids].all():
+            self._ensure_fields(ids)
+        return ids, self._offset, self._shape, self._origin, self._res, self._empty1, self._empty3, self._phi
+
     def geodesic(self, scene_ids: np.ndarray, anchor_ids: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Phi of each point (N, 3) to its env's anchor goal (N,), metres; outside the grid Phi grows."""
         ids = (np.asarray(scene_ids, dtype=np.int64) * self.count + np.asarray(anchor_ids, dtype=np.int64)).ravel()

@@ -24,6 +24,72 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True, fastmath=True, inline="always")
+def trilinear_point(
+    s: int,
+    px: float,
+    py: float,
+    pz: float,
+    offset: np.ndarray,
+    shape: np.ndarray,
+    origin: np.ndarray,
+    res: np.ndarray,
+    esdf: np.ndarray,
+    grad: np.ndarray,
+    phi: np.ndarray,
+    want_esdf: bool,
+    want_grad: bool,
+    want_phi: bool,
+) -> tuple[float, float, float, float, float]:
+    """One point ``(px, py, pz)`` of field ``s``: ``(esdf, grad_x, grad_y, grad_z, phi)`` (0 where not wanted).
+
+    The per-point body of every batched lookup, for numba kernels that walk the fields themselves (the planning
+    expert's path trace); the arrays are a :class:`FieldStack`'s (or :class:`GoalAnchorFields`') flat ones, as
+    :meth:`FieldStack.kernel_fields` returns them. Outside the grid box: the module docstring's clamping.
+    """
+    nx, ny, nz = shape[s, 0], shape[s, 1], shape[s, 2]
+    r = res[s]
+    fx = (px - origin[s, 0]) / r
+    fy = (py - origin[s, 1]) / r
+    fz = (pz - origin[s, 2]) / r
+    # Distance outside the grid box, in voxels per axis, then clamp onto the box.
+    ox = min(fx, 0.0) + max(fx - (nx - 1), 0.0)
+    oy = min(fy, 0.0) + max(fy - (ny - 1), 0.0)
+    oz = min(fz, 0.0) + max(fz - (nz - 1), 0.0)
+    outside = np.sqrt(ox * ox + oy * oy + oz * oz) * r
+    fx = min(max(fx, 0.0), nx - 1.0)
+    fy = min(max(fy, 0.0), ny - 1.0)
+    fz = min(max(fz, 0.0), nz - 1.0)
+    i0 = min(int(fx), nx - 2)
+    j0 = min(int(fy), ny - 2)
+    k0 = min(int(fz), nz - 2)
+    tx, ty, tz = fx - i0, fy - j0, fz - k0
+    sy = nz
+    sx = ny * nz
+    base = offset[s] + i0 * sx + j0 * sy + k0
+    e = 0.0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    p = 0.0
+    for a in range(2):
+        wa = tx if a else 1.0 - tx
+        for b in range(2):
+            wb = ty if b else 1.0 - ty
+            for c in range(2):
+                w = wa * wb * (tz if c else 1.0 - tz)
+                idx = base + a * sx + b * sy + c
+                if want_esdf:
+                    e += w * esdf[idx]
+                if want_grad:
+                    g0 += w * grad[idx, 0]
+                    g1 += w * grad[idx, 1]
+                    g2 += w * grad[idx, 2]
+                if want_phi:
+                    p += w * phi[idx]
+    return e - outside, g0, g1, g2, p + outside
+
+
 @numba.njit(cache=True, fastmath=True)
 def _trilinear(
     ids: np.ndarray,
@@ -43,55 +109,18 @@ def _trilinear(
     out_phi: np.ndarray,
 ) -> None:
     for n in range(ids.shape[0]):
-        s = ids[n]
-        nx, ny, nz = shape[s, 0], shape[s, 1], shape[s, 2]
-        r = res[s]
-        fx = (pts[n, 0] - origin[s, 0]) / r
-        fy = (pts[n, 1] - origin[s, 1]) / r
-        fz = (pts[n, 2] - origin[s, 2]) / r
-        # Distance outside the grid box, in voxels per axis, then clamp onto the box.
-        ox = min(fx, 0.0) + max(fx - (nx - 1), 0.0)
-        oy = min(fy, 0.0) + max(fy - (ny - 1), 0.0)
-        oz = min(fz, 0.0) + max(fz - (nz - 1), 0.0)
-        outside = np.sqrt(ox * ox + oy * oy + oz * oz) * r
-        fx = min(max(fx, 0.0), nx - 1.0)
-        fy = min(max(fy, 0.0), ny - 1.0)
-        fz = min(max(fz, 0.0), nz - 1.0)
-        i0 = min(int(fx), nx - 2)
-        j0 = min(int(fy), ny - 2)
-        k0 = min(int(fz), nz - 2)
-        tx, ty, tz = fx - i0, fy - j0, fz - k0
-        sy = nz
-        sx = ny * nz
-        base = offset[s] + i0 * sx + j0 * sy + k0
-        e = 0.0
-        g0 = 0.0
-        g1 = 0.0
-        g2 = 0.0
-        p = 0.0
-        for a in range(2):
-            wa = tx if a else 1.0 - tx
-            for b in range(2):
-                wb = ty if b else 1.0 - ty
-                for c in range(2):
-                    w = wa * wb * (tz if c else 1.0 - tz)
-                    idx = base + a * sx + b * sy + c
-                    if want_esdf:
-                        e += w * esdf[idx]
-                    if want_grad:
-                        g0 += w * grad[idx, 0]
-                        g1 += w * grad[idx, 1]
-                        g2 += w * grad[idx, 2]
-                    if want_phi:
-                        p += w * phi[idx]
+        e, g0, g1, g2, p = trilinear_point(
+            ids[n], pts[n, 0], pts[n, 1], pts[n, 2], offset, shape, origin, res, esdf, grad, phi,
+            want_esdf, want_grad, want_phi,
+        )  # fmt: skip
         if want_esdf:
-            out_esdf[n] = e - outside
+            out_esdf[n] = e
         if want_grad:
             out_grad[n, 0] = g0
             out_grad[n, 1] = g1
             out_grad[n, 2] = g2
         if want_phi:
-            out_phi[n] = p + outside
+            out_phi[n] = p
 
 
 class FieldStack:
@@ -216,6 +245,17 @@ class FieldStack:
             esdf, grad, geodesic, out_e, out_g, out_p,
         )  # fmt: skip
         return (out_e if esdf else None, out_g if grad else None, out_p if geodesic else None)
+
+    def kernel_fields(self, scene_ids: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(index (N,), offset, shape, origin, res, esdf, grad, phi)`` for :func:`trilinear_point` in a kernel.
+
+        Builds the fields of ``scene_ids`` first (a lazy stack); ``index`` is the field of each entry (its scene).
+        """
+        ids = np.asarray(scene_ids, dtype=np.int64).reshape(-1)
+        if ids.size and (ids.min() < 0 or ids.max() >= self.num_scenes):
+            raise ValueError(f"scene_ids must lie in 0..{self.num_scenes - 1}; got {ids.min()}..{ids.max()}")
+        self.ensure(ids)
+        return ids, self.offset, self.shape, self.origin, self.res, self._esdf, self._grad, self._phi
 
     def esdf(self, scene_ids: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Signed distance to the nearest obstacle (N,), metres, negative inside."""

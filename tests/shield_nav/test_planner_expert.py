@@ -200,3 +200,75 @@ def test_camera_visibility_slows_the_profile_before_unseen_path():
     plan = ctrl.plan(env)
     assert not plan["seen"][:, 1:].any()
     np.testing.assert_allclose(plan["speed"][:, 0], np.sqrt(ec.min_speed**2 + 2 * ec.brake_accel * ec.ds), rtol=1e-9)
+
+
+def _reference_trace(ctrl, env):
+    """The path trace written with numpy over envs (the expert's rule before its numba kernel), for comparison."""
+    ec = ctrl.ec
+    n, h = env.num_envs, ec.fd_step
+    ids, anchor, goal = env.scene_id_buf, env.anchor_buf, env.goal_buf
+    k_steps = int(math.ceil(ec.horizon / ec.ds))
+    offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))
+    ids7, anchor7 = np.repeat(ids, 7), np.repeat(anchor, 7)
+
+    def unit(v):
+        return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+    def phi7(x, fallback):
+        pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
+        out = ctrl._phi(env, ids7, anchor7, pts).reshape(n, 7)
+        if fallback.any():
+            out[fallback] = ctrl._phi(env, ids7, anchor7, pts, own=False).reshape(n, 7)[fallback]
+        return out
+
+    x = env.local_pos.astype(np.float64).copy()
+    p0 = phi7(x, np.zeros(n, dtype=bool))
+    fallback = np.abs(p0[:, 1:4] - p0[:, 4:7]).max(axis=1) / (2 * h) < ec.flat_slope
+    path, clear, prev = np.empty((n, k_steps + 1, 3)), np.empty((n, k_steps + 1)), None
+    for k in range(k_steps + 1):
+        path[:, k] = x
+        d, grad_d, _ = env.field_stack.query(ids, x, geodesic=False)
+        clear[:, k] = d
+        if k == k_steps:
+            break
+        phi = phi7(x, fallback)
+        u = -unit(phi[:, 1:4] - phi[:, 4:7])
+        g = unit(grad_d)
+        g_perp = g - np.sum(g * u, axis=1)[:, None] * u
+        w = ec.clearance_gain * np.clip(ec.d_pref - d, 0.0, ec.d_pref) / ec.d_pref
+        u = unit(u + w[:, None] * g_perp)
+        near = phi[:, 0] < ec.goal_switch
+        u[near] = unit(goal[near] - x[near])
+        if prev is not None and ec.momentum > 0:
+            u = unit(u + ec.momentum * prev)
+        prev = u
+        x = x + ec.ds * u
+    return path, clear, fallback
+
+
+def test_trace_kernel_equals_a_numpy_trace_with_and_without_the_narrow_field():
+    """The numba trace gives the paths and clearances of the same rule written in numpy over envs: in one batch,
+    envs on an open scene (the inflated field) and envs in a maze whose 0.5 m inflation closes every corridor (the
+    narrow field), then the same envs started 3 m before their goal points (the straight-at-the-goal switch)."""
+    env = NavigationEnv(num_envs=6, **{"scenes.family": "benchmark", "scenes.indices": [0, 14], "render_depth": False,
+                                       "curriculum.enabled": False})  # fmt: skip
+    scenes = np.array([0, 1, 0, 1, 0, 1])
+    env.reset(seed=4, options={"scene_ids": scenes})
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, smooth_window=1)))
+    path, clear = ctrl.trace(env)
+    ref_path, ref_clear, ref_fallback = _reference_trace(ctrl, env)
+    np.testing.assert_array_equal(ref_fallback, scenes == 1)  # the maze's envs, and only they, fall back
+    np.testing.assert_array_equal(ctrl.fallback, ref_fallback)
+    np.testing.assert_allclose(path, ref_path, atol=1e-6)
+    np.testing.assert_allclose(clear, ref_clear, atol=1e-6)
+
+    goal = env.goal_buf.copy()
+    env.reset(options={"scene_ids": scenes, "start": goal - np.array([3.0, 0.0, 0.0]), "goal": goal})
+    np.testing.assert_allclose(env.goal_buf, goal)
+    path, clear = ctrl.trace(env)
+    ref_path, ref_clear, _ = _reference_trace(ctrl, env)
+    np.testing.assert_allclose(path, ref_path, atol=1e-6)
+    np.testing.assert_allclose(clear, ref_clear, atol=1e-6)
+    # Within goal_switch of the goal the path heads at the goal point: its last sample is nearer than its first.
+    last, first = np.linalg.norm(path[:, -1] - goal, axis=1), np.linalg.norm(path[:, 0] - goal, axis=1)
+    assert np.all(last < first)

@@ -18,6 +18,8 @@ input fails before any work), then runs the stages in
 pipeline folder keeps ``pipeline.yaml`` (the resolved configs) and, per finished stage, ``<NN>_<stage>/stage.json``
 (its final checkpoint and training time). ``python train.py --resume <pipeline folder>`` skips finished stages,
 continues the interrupted one from its newest ``model_<it>.pt``, and runs the rest with the stored configs.
+A pipeline folder may be moved (committed for a later session, copied to another clone): the inputs its own earlier
+stages produced are read from where the folder is now.
 """
 
 from __future__ import annotations
@@ -212,6 +214,21 @@ def start(pipeline: Pipeline, overrides: Sequence[str] = ()) -> str:
     return root
 
 
+def _relocated(path: str, root: str, stage_dirs: set[str]) -> str:
+    """An earlier stage's checkpoint (``<old root>/<NN>_<stage>/model_<it>.pt``) under ``root``.
+
+    A pipeline folder stores its stages' inputs as absolute paths; read back from another place (a copy committed
+    for a later session, another clone), the inputs an earlier stage of the same folder produced are found there.
+    Any other path is returned unchanged.
+    """
+    parent, name = os.path.split(path)
+    old_root, stage = os.path.split(parent)
+    moved = os.path.abspath(old_root) != os.path.abspath(root)
+    if moved and stage in stage_dirs and re.fullmatch(r"model_\d+\.pt", name):
+        return os.path.join(root, stage, name)
+    return path
+
+
 def load_stored(root: str, overrides: Sequence[str] = ()) -> tuple[list[str], list[TrainConfig]]:
     """The stage names and resolved configs a pipeline folder stored (``overrides`` apply on top, e.g. ``device``)."""
     path = os.path.join(root, PIPELINE_FILE)
@@ -221,7 +238,12 @@ def load_stored(root: str, overrides: Sequence[str] = ()) -> tuple[list[str], li
     with open(path, encoding="utf-8") as f:
         record = yaml.safe_load(f)
     names, configs = [], []
-    for stage in record["stages"]:
+    for i, stage in enumerate(record["stages"]):
+        runner = stage["config"].get("runner", {})
+        earlier = {os.path.basename(stage_dir(root, j, s["name"])) for j, s in enumerate(record["stages"][:i])}
+        for key in _INPUT_KEYS:
+            if isinstance(runner.get(key), str):
+                runner[key] = _relocated(runner[key], root, earlier)
         try:
             cfg = load_train_config(overrides=list(overrides), base=load_train_config(overrides=stage["config"]))
         except ConfigError as err:
@@ -253,7 +275,7 @@ def run(
         marker = os.path.join(run_dir, STAGE_FILE)
         if os.path.isfile(marker):
             with open(marker, encoding="utf-8") as f:
-                records.append(json.load(f))
+                records.append({**json.load(f), "checkpoint": final_checkpoint(run_dir, cfg)})  # where it is now
             print(f"[pipeline] stage {i + 1}/{len(names)} '{name}': finished before, skipped", flush=True)
             continue
         latest = _latest_checkpoint(run_dir) if os.path.isdir(run_dir) else None

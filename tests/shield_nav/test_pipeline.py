@@ -75,6 +75,20 @@ def test_two_stages_run_in_sequence_and_resume_skips_the_finished_one(tmp_path):
     assert torch.load(os.path.join(top, "01_second", "model_2.pt"), weights_only=False)["iter"] == 2
     assert os.path.isfile(os.path.join(top, "01_second", "exported", "policy.onnx"))
 
+    # Moved elsewhere (a folder committed for a later session, another clone) before stage 2 began: stage 2 reads
+    # stage 1's checkpoint where it now is; the stored absolute path no longer exists.
+    moved = str(tmp_path / "committed" / folder)
+    os.makedirs(os.path.dirname(moved))
+    os.rename(top, moved)
+    subprocess.run(["rm", "-r", os.path.join(moved, "01_second"), os.path.join(moved, "summary.json")], check=True)
+    res = run_train(["--resume", moved])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert f"actor initialised from {os.path.join(moved, '00_first', 'model_1.pt')}" in res.stdout
+    with open(os.path.join(moved, "summary.json")) as f:
+        records = json.load(f)["stages"]
+    assert [r["checkpoint"] for r in records] == [os.path.join(moved, "00_first", "model_1.pt"),
+                                                  os.path.join(moved, "01_second", "model_2.pt")]  # fmt: skip
+
 
 def test_bad_pipelines_fail_by_key_before_any_folder(tmp_path):
     root = tmp_path / "logs"

@@ -39,6 +39,7 @@ from shield_nav.shield_rows import (
     command_from_accel,
     ground_row,
     hocbf_rows,
+    passing_rows,
 )
 
 __all__ = [
@@ -56,6 +57,7 @@ __all__ = [
     "command_from_accel",
     "ground_row",
     "hocbf_rows",
+    "passing_rows",
 ]
 
 STATUS_INACTIVE = 0
@@ -163,6 +165,11 @@ class ShieldConfig:
     (docs/shield.md, "Braking barrier"); the tilt limit gives at most g tan(50 deg) = 11.7 m/s^2 level."""
     brake_gain: float = 4.0
     """Class-K gain [1/s] of the braking barrier's first-order condition hdot >= -gain h (chosen on validation)."""
+    passing: bool = False
+    """Braking barrier only: also let a point pass when the velocity points outside the collision cone of its
+    r_safe ball (the union of the braking barrier and the cone barrier h_c = r.v + |v| sqrt(|r|^2 - r_safe^2),
+    each point with the one that gives it more room; same gain). The braking barrier alone brakes for points
+    beside the path, which straight flight would pass (docs/shield.md, "Passing")."""
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
@@ -194,6 +201,10 @@ class ShieldConfig:
                 f"must be > 0, got {self.brake_accel}")  # fmt: skip
         require(self.brake_gain > 0 and math.isfinite(self.brake_gain), f"{prefix}brake_gain",
                 f"must be > 0, got {self.brake_gain}")  # fmt: skip
+        require(isinstance(self.passing, bool), f"{prefix}passing", f"must be true or false, got {self.passing!r}")
+        require(not self.passing or self.barrier == "braking", f"{prefix}passing",
+                f"needs barrier 'braking' (it is the braking barrier's union with the collision cone), got barrier "
+                f"{self.barrier!r}")  # fmt: skip
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
                 f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
@@ -272,7 +283,8 @@ class HOCBFShield:
         self._rows = np.zeros((0, 8))  # braking barrier: every considered point's rows from the last selection
         self._rows_n = np.zeros(1, dtype=np.int64)  # how many (-1: none kept, the distance barrier)
         self._a_buf = np.zeros(3)
-        self._brake_params = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain])
+        self._brake_params = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain,
+                                       1.0 if cfg.passing else 0.0])  # fmt: skip
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
@@ -335,7 +347,8 @@ class HOCBFShield:
         """Select up to K points and return (r (k, 3), A (k, 3), b (k,)) with rows A a >= b.
 
         ``lagged``: (position, velocity) predicted one lag ahead (``lag_s``); each point then also has its row at
-        that state, and keeps the tighter of the two. ``r`` is the offset of the state its row was taken at.
+        that state, and keeps the tighter of the two. ``r`` is the offset of the state its row was taken at, i.e. A / 2
+        (with ``passing``, a collision-cone row has A / 2 = (r + S v / |v|) / 2 instead; ``passing_rows``).
         """
         c = self.cfg
         pts = np.ascontiguousarray(points_w, dtype=np.float64).reshape(-1, 3)

@@ -15,6 +15,12 @@ import numpy as np
 
 from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
 
+PASSING_MIN_SPEED = 0.5
+"""[m/s] Below this speed the braking barrier's collision-cone union is off (its row divides by |v|)."""
+PASSING_MIN_S = 0.05
+"""[m] The cone row needs S = sqrt(|r|^2 - r_safe^2) at least this large (it divides by S); closer, the braking row
+alone applies."""
+
 BRAKE_EPS = 1.0e-3
 """[m] Smallest |d - r_safe| the braking barrier divides by (keeps its rows finite at r_safe, where an approach
 then asks for far more braking than the vehicle has, and the QP relaxes)."""
@@ -111,6 +117,39 @@ def braking_rows(
     return 2.0 * r, 2.0 * d * b
 
 
+def passing_rows(
+    r: np.ndarray, v: np.ndarray, a: np.ndarray, r_safe: float, brake_accel: float, gain: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The braking barrier's rows with its collision-cone union (``passing: true``; docs/shield.md, "Passing").
+
+    The collision-cone barrier h_c = r.v + |v| S, S = sqrt(|r|^2 - r_safe^2), is >= 0 when v points outside the
+    cone the r_safe ball subtends, so that flying straight on passes the point at least r_safe away; its
+    first-order row is (r + S v / |v|).a >= -gain h_c - |v|^2 - |v| (r.v) / S, which a = 0 meets whenever h_c >= 0.
+    The safe set is the union of {h_b >= 0} (``braking_rows``) and {h_c >= 0}; a point gets the cone row where
+    h_c >= 0 and either h_b < 0 or the cone row is nearer to being met at the acceleration ``a`` (row value over
+    |A|), else its braking row. The cone is off where |v| <= ``PASSING_MIN_SPEED`` or S < ``PASSING_MIN_S``.
+    Returns (A (K, 3), b (K,), cone (K,) bool); A = 2 r for the braking rows.
+    """
+    r = np.atleast_2d(np.asarray(r, dtype=np.float64))
+    v = np.asarray(v, dtype=np.float64)
+    a = np.asarray(a, dtype=np.float64)
+    a_mat, b = braking_rows(r, v, r_safe, brake_accel, gain)
+    d = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
+    speed = float(np.linalg.norm(v))
+    s2 = d * d - r_safe * r_safe
+    ok = (s2 > PASSING_MIN_S**2) & (speed > PASSING_MIN_SPEED)
+    s = np.sqrt(np.where(ok, s2, 1.0))
+    rv = r @ v
+    e = d - r_safe
+    h_b = np.sign(e) * np.sqrt(2.0 * brake_accel * np.abs(e)) + rv / d
+    h_c = rv + speed * s
+    a_cone = r + s[:, None] * (v / max(speed, 1e-12))[None, :]
+    b_cone = -gain * h_c - speed * speed - speed * rv / s
+    nearer = (a_cone @ a - b_cone) / np.linalg.norm(a_cone, axis=1) > (a_mat @ a - b) / (2.0 * d)
+    cone = ok & (h_c >= 0.0) & ((h_b < 0.0) | nearer)
+    return np.where(cone[:, None], a_cone, a_mat), np.where(cone, b_cone, b), cone
+
+
 def hocbf_rows(
     r: np.ndarray, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -159,26 +198,64 @@ def _brake_rhs_d(rx: float, ry: float, rz: float, dist: float, vx: float, vy: fl
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _braking_point_rows(ox: float, oy: float, oz: float, rx: float, ry: float, rz: float, d: float, k: tuple,
-                        use_lag: bool) -> tuple[float, float, float, float, float]:  # fmt: skip
-    """A point's braking rows, which do not depend on the acceleration.
+def _point_row(rx: float, ry: float, rz: float, d: float, vx: float, vy: float, vz: float, speed: float, k: tuple
+               ) -> tuple[float, float, float, float]:  # fmt: skip
+    """A point's row 2 q.a >= b at offset r (``d`` = |r|) and velocity v (``speed`` = |v|) with the braking barrier.
 
-    b0 of its row now (A = 2 r, ``d`` = |r|), and (q, b1) of its row at the lagged state, or (0, 0, 0, -inf) where
-    that row does not compete (no lag, or the prediction has passed the point: (p_lag - o).(p - o) <= 0). ``k``
-    holds the constants of ``_consts``.
+    The braking row has q = r (``_brake_rhs_d``). With passing on (``k[20]``), the collision-cone barrier
+    h_c = r.v + |v| S, S = sqrt(d^2 - r_safe^2), competes; its first-order row hdot_c >= -gain h_c is
+    (r + S v / |v|).a >= -gain h_c - |v|^2 - |v| (r.v) / S, i.e. q = (r + S v / |v|) / 2. The safe set is the
+    union {h_b >= 0} or {h_c >= 0}: holding either barrier that is non-negative keeps the point r_safe away. The
+    cone row is taken where h_c >= 0 and either h_b < 0 or the cone row is the nearer to being met at the
+    acceleration ``k[6:9]`` (its value over |A| larger); otherwise the braking row (``passing_rows``).
     """
-    b0 = _brake_rhs_d(rx, ry, rz, d, k[0], k[1], k[2], k[16], k[17], k[18], k[19])
+    b = _brake_rhs_d(rx, ry, rz, d, vx, vy, vz, k[16], k[17], k[18], k[19])
+    if k[20] > 0.5 and speed > PASSING_MIN_SPEED:
+        s2 = d * d - k[16] * k[16]
+        if s2 > PASSING_MIN_S * PASSING_MIN_S:
+            rv = rx * vx + ry * vy + rz * vz
+            s = math.sqrt(s2)
+            h_c = rv + speed * s
+            if h_c >= 0.0:
+                w = s / speed
+                cx, cy, cz = rx + w * vx, ry + w * vy, rz + w * vz
+                b_c = -k[18] * h_c - speed * speed - speed * rv / s
+                e = d - k[16]
+                take = e <= 0.0 or math.sqrt(2.0 * k[17] * e) + rv / d < 0.0  # h_b < 0
+                if not take:  # both barriers hold: the row the acceleration is nearer to meeting
+                    m_c = (cx * k[6] + cy * k[7] + cz * k[8] - b_c) / max(math.sqrt(cx * cx + cy * cy + cz * cz), 1e-12)
+                    m_b = (2.0 * (rx * k[6] + ry * k[7] + rz * k[8]) - b) / (2.0 * d)
+                    take = m_c > m_b
+                if take:
+                    return 0.5 * cx, 0.5 * cy, 0.5 * cz, b_c
+    return rx, ry, rz, b
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _braking_point_rows(ox: float, oy: float, oz: float, rx: float, ry: float, rz: float, d: float, k: tuple,
+                        use_lag: bool) -> tuple[float, float, float, float, float, float, float, float]:  # fmt: skip
+    """A point's braking-barrier rows, which do not depend on the acceleration.
+
+    (q0, b0) of its row now (``_point_row``; q0 = r for a braking row, ``d`` = |r|), and (q1, b1) of its row at
+    the lagged state, or (0, 0, 0, -inf) where that row does not compete (no lag, or the prediction has passed the
+    point: (p_lag - o).(p - o) <= 0). ``k`` holds the constants of ``_consts``.
+    """
+    q0x, q0y, q0z, b0 = _point_row(rx, ry, rz, d, k[0], k[1], k[2], k[21], k)
     if use_lag:
         qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
         if qx * rx + qy * ry + qz * rz > 0.0:
-            return b0, qx, qy, qz, _brake_rhs(qx, qy, qz, k[9], k[10], k[11], k[16], k[17], k[18], k[19])
-    return b0, 0.0, 0.0, 0.0, -np.inf
+            dq = math.sqrt(qx * qx + qy * qy + qz * qz)
+            q1x, q1y, q1z, b1 = _point_row(qx, qy, qz, dq, k[9], k[10], k[11], k[22], k)
+            return q0x, q0y, q0z, b0, q1x, q1y, q1z, b1
+    return q0x, q0y, q0z, b0, 0.0, 0.0, 0.0, -np.inf
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _pair_margin(rx: float, ry: float, rz: float, b0: float, qx: float, qy: float, qz: float, b1: float, ax: float,
                  ay: float, az: float) -> tuple[float, bool]:  # fmt: skip
     """The smaller row value at a of a point's two rows 2 r.a >= b0 and 2 q.a >= b1, and whether it is the second.
+
+    (r is the first row's half-normal: the offset p - o for a braking row, see ``_point_row``.)
 
     The second wins only if strictly smaller; a row (0, -inf) never does.
     """
@@ -187,14 +264,6 @@ def _pair_margin(rx: float, ry: float, rz: float, b0: float, qx: float, qy: floa
     if m_lag < m:
         return m_lag, True
     return m, False
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _row_rhs(rx: float, ry: float, rz: float, vs: np.ndarray, k: tuple, alpha0: float, alpha1: float) -> float:
-    """Right-hand side b of the configured barrier's row 2 r.a >= b at offset r and velocity vs."""
-    if k[15] > 0.5:
-        return _brake_rhs(rx, ry, rz, vs[0], vs[1], vs[2], k[16], k[17], k[18], k[19])
-    return _rhs(rx, ry, rz, vs, alpha0, alpha1, k[16])
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -223,9 +292,9 @@ def _tighter_margin(ox: float, oy: float, oz: float, rx: float, ry: float, rz: f
     the arithmetic.
     """
     if k[15] > 0.5:  # braking
-        b0, qx, qy, qz, b1 = _braking_point_rows(ox, oy, oz, rx, ry, rz, math.sqrt(rx * rx + ry * ry + rz * rz), k,
-                                                 use_lag)  # fmt: skip
-        return _pair_margin(rx, ry, rz, b0, qx, qy, qz, b1, k[6], k[7], k[8])
+        q0x, q0y, q0z, b0, qx, qy, qz, b1 = _braking_point_rows(ox, oy, oz, rx, ry, rz,
+                                                                math.sqrt(rx * rx + ry * ry + rz * rz), k, use_lag)
+        return _pair_margin(q0x, q0y, q0z, b0, qx, qy, qz, b1, k[6], k[7], k[8])
     m = _margin(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
     if use_lag:
         qx, qy, qz = k[3] - ox, k[4] - oy, k[5] - oz
@@ -242,13 +311,16 @@ def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, 
     """The per-call constants of ``_tighter_margin`` as a tuple (a value: passing it per point costs nothing).
 
     v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2, then the barrier: ``brake`` = (braking flag,
-    brake_accel, gain) with the flag > 0.5 for the braking barrier, r_safe, and the braking divisor's floor
-    sqrt(2 brake_accel BRAKE_EPS).
+    brake_accel, gain, passing flag) with the flags > 0.5 for the braking barrier and for its collision-cone union
+    (``_point_row``), r_safe, the braking divisor's floor sqrt(2 brake_accel BRAKE_EPS), the passing flag, |v| and
+    |v_lag|.
     """
     return (v[0], v[1], v[2], p_lag[0], p_lag[1], p_lag[2], a[0], a[1], a[2], v_lag[0], v_lag[1], v_lag[2],
             2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
             2.0 * (v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), r_safe * r_safe,
-            brake[0], r_safe, brake[1], brake[2], math.sqrt(2.0 * brake[1] * BRAKE_EPS))  # fmt: skip
+            brake[0], r_safe, brake[1], brake[2], math.sqrt(2.0 * brake[1] * BRAKE_EPS), brake[3],
+            math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
+            math.sqrt(v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]))  # fmt: skip
 
 
 @nb.njit(cache=True, nogil=True)
@@ -273,8 +345,9 @@ def _min_margin(
     """The smallest row value at acceleration ``a`` over every point ``_select`` considers, and that row.
 
     Same rules as ``_select`` (distance and height windows; with ``use_lag`` the tighter of a point's two rows
-    unless the prediction passed it), without the binning: the active-set check. ``out_row`` gets (r_x, r_y, r_z,
-    b) of the tightest row (A = 2 r), the one a violated check adds to the QP.
+    unless the prediction passed it), without the binning: the active-set check. ``out_row`` gets (q_x, q_y, q_z,
+    b) of the tightest row (A = 2 q; q = r except for a collision-cone row, ``_point_row``), the one a violated
+    check adds to the QP.
     """
     best = np.inf
     best_i = -1
@@ -291,10 +364,20 @@ def _min_margin(
         if m < best:
             best, best_i, best_lag = m, i, lagged
     if best_i >= 0:
-        ps, vs = (p_lag, v_lag) if best_lag else (p, v)
-        rx, ry, rz = ps[0] - points[best_i, 0], ps[1] - points[best_i, 1], ps[2] - points[best_i, 2]
-        out_row[0], out_row[1], out_row[2] = rx, ry, rz
-        out_row[3] = _row_rhs(rx, ry, rz, vs, k, alpha0, alpha1)
+        ox, oy, oz = points[best_i, 0], points[best_i, 1], points[best_i, 2]
+        if k[15] > 0.5:  # braking: the point's rows again, the chosen one out
+            rx, ry, rz = p[0] - ox, p[1] - oy, p[2] - oz
+            q0x, q0y, q0z, b0, q1x, q1y, q1z, b1 = _braking_point_rows(
+                ox, oy, oz, rx, ry, rz, math.sqrt(rx * rx + ry * ry + rz * rz), k, use_lag)  # fmt: skip
+            if best_lag:
+                out_row[0], out_row[1], out_row[2], out_row[3] = q1x, q1y, q1z, b1
+            else:
+                out_row[0], out_row[1], out_row[2], out_row[3] = q0x, q0y, q0z, b0
+        else:
+            ps, vs = (p_lag, v_lag) if best_lag else (p, v)
+            rx, ry, rz = ps[0] - ox, ps[1] - oy, ps[2] - oz
+            out_row[0], out_row[1], out_row[2] = rx, ry, rz
+            out_row[3] = _rhs(rx, ry, rz, vs, alpha0, alpha1, r_safe)
     return best
 
 
@@ -347,6 +430,7 @@ def _select(
     best_m = np.full(n_sec, np.inf)
     best_i = np.full(n_sec, -1)
     best_lag = np.zeros(n_sec, dtype=np.bool_)
+    best_row = np.full(n_sec, -1)
     two_pi = 2.0 * math.pi
     k = _consts(v, p_lag, a_raw, v_lag, r_safe, brake)
     braking = k[15] > 0.5
@@ -360,10 +444,10 @@ def _select(
             continue
         d = math.sqrt(d2)
         if braking:  # _tighter_margin's braking branch, keeping the rows for the active-set check
-            b0, qx, qy, qz, b1 = _braking_point_rows(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, d, k,
-                                                     use_lag)  # fmt: skip
-            m, lagged = _pair_margin(rx, ry, rz, b0, qx, qy, qz, b1, k[6], k[7], k[8])
-            rows[nr, 0], rows[nr, 1], rows[nr, 2], rows[nr, 3] = rx, ry, rz, b0
+            q0x, q0y, q0z, b0, qx, qy, qz, b1 = _braking_point_rows(points[i, 0], points[i, 1], points[i, 2], rx, ry,
+                                                                    rz, d, k, use_lag)  # fmt: skip
+            m, lagged = _pair_margin(q0x, q0y, q0z, b0, qx, qy, qz, b1, k[6], k[7], k[8])
+            rows[nr, 0], rows[nr, 1], rows[nr, 2], rows[nr, 3] = q0x, q0y, q0z, b0
             rows[nr, 4], rows[nr, 5], rows[nr, 6], rows[nr, 7] = qx, qy, qz, b1
             nr += 1
         else:
@@ -378,6 +462,7 @@ def _select(
             best_m[s] = m
             best_i[s] = i
             best_lag[s] = lagged
+            best_row[s] = nr - 1
     order = np.argsort(best_m)
     out_min[0] = best_m[order[0]]
     n = 0
@@ -386,11 +471,16 @@ def _select(
         if best_i[s] < 0:
             break
         i = best_i[s]
-        ps, vs = (p_lag, v_lag) if best_lag[s] else (p, v)
-        rx, ry, rz = ps[0] - points[i, 0], ps[1] - points[i, 1], ps[2] - points[i, 2]
-        out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
+        if braking:  # the row kept for the point
+            j, row = (4 if best_lag[s] else 0), best_row[s]
+            out_r[n, 0], out_r[n, 1], out_r[n, 2], out_b[n] = rows[row, j], rows[row, j + 1], rows[row, j + 2], rows[
+                row, j + 3]  # fmt: skip
+        else:
+            ps, vs = (p_lag, v_lag) if best_lag[s] else (p, v)
+            rx, ry, rz = ps[0] - points[i, 0], ps[1] - points[i, 1], ps[2] - points[i, 2]
+            out_r[n, 0], out_r[n, 1], out_r[n, 2] = rx, ry, rz
+            out_b[n] = _rhs(rx, ry, rz, vs, alpha0, alpha1, r_safe)
         out_o[n, 0], out_o[n, 1], out_o[n, 2] = points[i, 0], points[i, 1], points[i, 2]
-        out_b[n] = _row_rhs(rx, ry, rz, vs, k, alpha0, alpha1)
         n += 1
     out_rows[0] = nr if braking else -1
     return n

@@ -23,6 +23,7 @@ from shield_nav.shield import (
     command_from_accel,
     ground_row,
     hocbf_rows,
+    passing_rows,
 )
 
 G = 9.81
@@ -642,6 +643,121 @@ def test_barrier_config_is_checked():
         ShieldConfig(barrier="braking", brake_accel=0.0).validate()
     with pytest.raises(ConfigError, match="brake_gain"):
         ShieldConfig(brake_gain=float("nan")).validate()
+    with pytest.raises(ConfigError, match="passing.*needs barrier 'braking'"):
+        ShieldConfig(barrier="distance", passing=True).validate()
+    with pytest.raises(ConfigError, match="passing"):
+        ShieldConfig(passing="yes").validate()
+
+
+def test_passing_row_hand_computed():
+    # A point 1 m beside the path, 3 m ahead, at 9 m/s: r = p - o = (-3, 1, 0), v = (9, 0, 0), r_safe 0.3, a_b 8,
+    # gain 4. d = sqrt(10) = 3.162278; braking: e = 2.862278, s = sqrt(16 e) = 6.767307, c = 27 / d = 8.538150,
+    # h_b = s - c = -1.770843 < 0 (braking at 8 m/s^2 along n no longer stops the approach). Cone: S = sqrt(9.91)
+    # = 3.148015, h_c = r.v + |v| S = -27 + 28.332137 = 1.332137 >= 0 (v points outside the 0.3 m ball's cone), so
+    # the cone row: A = r + S v / |v| = (0.148015, 1, 0), b = -4 h_c - 81 - 9 (-27) / S = -5.328549 - 81 +
+    # 77.191494 = -9.137055; a = 0 meets it. The braking row alone asks 2 r.a >= 2 d b = 92.435497, i.e. 15.4 m/s^2
+    # of braking for a point straight flight passes 1 m away.
+    r, v, a0 = np.array([[-3.0, 1.0, 0.0]]), np.array([9.0, 0.0, 0.0]), np.zeros(3)
+    a_mat, b_vec, cone = passing_rows(r, v, a0, 0.3, 8.0, 4.0)
+    assert cone.tolist() == [True]
+    np.testing.assert_allclose(a_mat, [[0.148015, 1.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(b_vec, [-9.137055], atol=1e-6)
+    np.testing.assert_allclose(braking_rows(r, v, 0.3, 8.0, 4.0)[1], [92.435497], atol=1e-6)
+    # Head-on (inside the cone: h_c = -9 (3 - S') < 0): the braking row, unchanged.
+    r = np.array([[-3.0, 0.0, 0.0]])
+    a_mat, b_vec, cone = passing_rows(r, v, a0, 0.3, 8.0, 4.0)
+    a_brake, b_brake = braking_rows(r, v, 0.3, 8.0, 4.0)
+    assert cone.tolist() == [False]
+    np.testing.assert_array_equal(a_mat, a_brake)
+    np.testing.assert_array_equal(b_vec, b_brake)
+    # Both hold (a point 6 m ahead, 1 m aside: d = sqrt(37) = 6.082763, h_b = sqrt(16 (d - 0.3)) - 54 / d = 0.741 > 0,
+    # h_c = -54 + 9 sqrt(36.91) = 0.678 > 0): the row nearer to being met at a, by its value over |A|. At a = 0 the
+    # braking row is broken (b = 49.366, value -49.366 / 2d = -4.058) and the cone row met (+3.707): cone. Turning
+    # hard towards the point, a = (0, -10, 0), both break, the braking row less (-5.702 against -6.265): braking.
+    r = np.array([[-6.0, 1.0, 0.0]])
+    np.testing.assert_allclose(braking_rows(r, v, 0.3, 8.0, 4.0)[1], [49.366002], atol=1e-6)
+    assert passing_rows(r, v, a0, 0.3, 8.0, 4.0)[2].tolist() == [True]
+    assert passing_rows(r, v, np.array([0.0, -10.0, 0.0]), 0.3, 8.0, 4.0)[2].tolist() == [False]
+
+
+def test_passing_row_is_the_first_order_cbf_of_the_cone_barrier():
+    # h_c(t) = r.v + |v| sqrt(|r|^2 - r_safe^2) along p(t) = p0 + v0 t + acc t^2 / 2; the cone row's value A.acc - b
+    # must equal hdot_c + gain h_c, with hdot_c from finite differences.
+    # (The point is inside the braking distance, h_b < 0, and outside the collision cone, h_c = 0.818: the cone row.)
+    p0, v0, acc, o = np.array([0.3, -1.0, 1.2]), np.array([6.0, 1.0, -0.5]), np.array([-2.0, 3.0, 0.7]), \
+        np.array([1.8, 0.0, 1.0])  # fmt: skip
+    rs, a_b, gain = 0.3, 8.0, 3.0
+
+    def h_of(t: float) -> float:
+        p, v = p0 + v0 * t + 0.5 * acc * t * t, v0 + acc * t
+        r = p - o
+        return r @ v + np.linalg.norm(v) * math.sqrt(r @ r - rs * rs)
+
+    assert h_of(0.0) > 0
+    a_mat, b_vec, cone = passing_rows((p0 - o)[None], v0, np.zeros(3), rs, a_b, gain)
+    assert cone[0]
+    eps = 1e-5
+    h_dot = (h_of(eps) - h_of(-eps)) / (2 * eps)
+    assert a_mat[0] @ acc - b_vec[0] == pytest.approx(h_dot + gain * h_of(0.0), rel=1e-6)
+
+
+@pytest.mark.parametrize("lag", [False, True])
+def test_passing_kernel_rows_equal_the_reference(lag):
+    """The numba selection's rows with ``passing`` are ``passing_rows`` of the selected points (at the raw command;
+    with the lag, at the lagged state where that row is the tighter), and the cone rows do occur."""
+    rng = np.random.default_rng(5)
+    shield = HOCBFShield(ShieldConfig(passing=True, lag_s=0.0))
+    cfg = shield.cfg
+    cones = rows = 0
+    for p, v, pts, cmd in _random_clouds(80, 13):
+        a_raw = accel_from_command(cmd)[0]
+        lagged = (p + 0.15 * v + rng.normal(0.0, 0.1, 3), v + rng.normal(0.0, 1.0, 3)) if lag else None
+        _, a_mat, b_vec = shield.constraints(pts, p, v, a_raw, lagged)
+        for o, a_row, b in zip(shield._o_buf[: len(b_vec)], a_mat, b_vec, strict=True):
+            cands = [(p, v)] + ([lagged] if lag and (lagged[0] - o) @ (p - o) > 0 else [])
+            ref = [passing_rows((ps - o)[None], vs, a_raw, cfg.r_safe, cfg.brake_accel, cfg.brake_gain)
+                   for ps, vs in cands]  # fmt: skip
+            # The point's tighter row at a_raw is the one selected.
+            vals = [a_r[0] @ a_raw - b_r[0] for a_r, b_r, _ in ref]
+            a_ref, b_ref, c_ref = ref[int(np.argmin(vals))] if len(vals) == 1 or vals[1] < vals[0] else ref[0]
+            np.testing.assert_allclose(a_row, a_ref[0], rtol=1e-9, atol=1e-9)
+            assert b == pytest.approx(b_ref[0], rel=1e-9, abs=1e-9)
+            cones += int(c_ref[0])
+            rows += 1
+    assert rows > 300 and 0 < cones < rows
+
+
+@pytest.mark.parametrize("offset", [1.0, 0.6, 0.0])
+def test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on(offset):
+    """A point mass cruising at 9 m/s (a_raw = 0, no lag) along a row of poles (points every 3 m, 0.5-2.5 m high)
+    ``offset`` beside its path. Straight flight passes each pole ``offset`` away, outside r_safe = 0.3 m: with
+    ``passing`` the shield leaves it alone (speed 9 m/s, closest approach = offset), while the braking barrier alone
+    brakes for every pole (measured: down to 6.9 / 5.7 m/s at offsets 1.0 / 0.6) and pushes the vehicle aside. Head-on
+    (offset 0) both stop outside r_safe."""
+    xs, zs = np.arange(5.0, 45.0, 3.0), np.linspace(0.5, 2.5, 9)
+    poles = np.array([[x, offset, z] for x in xs for z in zs])
+    cmd = np.array([[G, 0.0, 0.0, 0.0]])
+    result = {}
+    for passing in (False, True):
+        shield = HOCBFShield(ShieldConfig(lag_s=0.0, memory_steps=0, passing=passing))
+        pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
+        v_min = d_min = math.inf
+        active = 0
+        for _ in range(600):  # 3 s in 5 ms steps
+            out = shield.filter(cmd, pos[None], vel[None], points_w=[poles])
+            active += int(out.active[0])
+            vel = vel + 0.005 * out.accel_safe[0]
+            pos = pos + 0.005 * vel
+            v_min = min(v_min, float(np.linalg.norm(vel)))
+            d_min = min(d_min, float(np.min(np.linalg.norm(poles - pos, axis=1))))
+        result[passing] = (v_min, d_min, active)
+    if offset > 0:
+        v_min, d_min, active = result[True]
+        assert active == 0 and v_min == 9.0 and d_min == pytest.approx(offset, abs=1e-4)  # sampled every 4.5 cm
+        assert result[False][0] < 7.0 and result[False][2] > 0
+    else:
+        for v_min, d_min, _ in result.values():
+            assert v_min < 1e-3 and d_min >= 0.3 - 0.005
 
 
 def test_solver_failure_falls_back_to_a_flyable_braking_command():

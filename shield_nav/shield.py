@@ -169,7 +169,7 @@ class ShieldConfig:
     """Braking barrier only: also let a point pass when the velocity points outside the collision cone of its
     r_safe ball (the union of the braking barrier and the cone barrier h_c = r.v + |v| sqrt(|r|^2 - r_safe^2),
     each point with the one that gives it more room; same gain). The braking barrier alone brakes for points
-    beside the path, which straight flight would pass (docs/shield.md, "Passing")."""
+    beside the path, which straight flight would pass (docs/shield.md, "It brakes for points beside the path")."""
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by

@@ -120,7 +120,7 @@ def braking_rows(
 def passing_rows(
     r: np.ndarray, v: np.ndarray, a: np.ndarray, r_safe: float, brake_accel: float, gain: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The braking barrier's rows with its collision-cone union (``passing: true``; docs/shield.md, "It brakes for points beside the path").
+    """The braking barrier's rows with its collision-cone union (``passing: true``; docs/shield.md).
 
     The collision-cone barrier h_c = r.v + |v| S, S = sqrt(|r|^2 - r_safe^2), is >= 0 when v points outside the
     cone the r_safe ball subtends, so that flying straight on passes the point at least r_safe away; its

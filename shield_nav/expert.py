@@ -368,7 +368,7 @@ class PlannerController:
         x = env.local_pos.astype(np.float64)
         if not np.isfinite(x).all():
             bad = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
-            raise ValueError(f"PlanningExpert.trace: env {bad} has a non-finite position {x[bad].tolist()}")
+            raise ValueError(f"PlannerController.trace: env {bad} has a non-finite position {x[bad].tolist()}")
         # Where the inflation closes every way to the goal, the inflated Phi is flat (capped at its unreachable
         # value): those envs descend the narrow field instead (the vehicle radius, clearance-weighted).
         offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)

@@ -593,19 +593,22 @@ def test_braking_row_is_the_first_order_cbf_of_its_barrier():
     p0, v0, acc, o = np.array([0.3, -1.0, 1.2]), np.array([4.0, 1.0, -0.5]), np.array([-2.0, 3.0, 0.7]), \
         np.array([5.0, 0.5, 1.0])  # fmt: skip
     rs, a_b, gain = 0.5, 6.0, 3.0
-
-    def h_of(t: float) -> float:
-        p, v = p0 + v0 * t + 0.5 * acc * t * t, v0 + acc * t
-        r = p - o
-        d = np.linalg.norm(r)
-        return math.sqrt(2 * a_b * (d - rs)) + r @ v / d
-
-    eps = 1e-5
-    h_dot = (h_of(eps) - h_of(-eps)) / (2 * eps)
+    h0, h_dot = _barrier_and_rate(
+        lambda r, v: math.sqrt(2 * a_b * (np.linalg.norm(r) - rs)) + r @ v / np.linalg.norm(r), p0, v0, acc, o
+    )
     r = p0 - o
     a_mat, b_vec = braking_rows(r[None], v0, rs, a_b, gain)
     d = np.linalg.norm(r)
-    assert (a_mat[0] @ acc - b_vec[0]) / (2 * d) == pytest.approx(h_dot + gain * h_of(0.0), rel=1e-6)
+    assert (a_mat[0] @ acc - b_vec[0]) / (2 * d) == pytest.approx(h_dot + gain * h0, rel=1e-6)
+
+
+def _barrier_and_rate(h, p0, v0, acc, o, eps=1e-5):
+    """``h(r, v)`` at t = 0 along p(t) = p0 + v0 t + acc t^2 / 2 (r = p - o), and its rate by central differences."""
+
+    def h_of(t: float) -> float:
+        return h(p0 + v0 * t + 0.5 * acc * t * t - o, v0 + acc * t)
+
+    return h_of(0.0), (h_of(eps) - h_of(-eps)) / (2 * eps)
 
 
 def test_braking_barrier_stops_a_head_on_approach_with_at_most_its_deceleration():
@@ -687,18 +690,13 @@ def test_passing_row_is_the_first_order_cbf_of_the_cone_barrier():
     p0, v0, acc, o = np.array([0.3, -1.0, 1.2]), np.array([6.0, 1.0, -0.5]), np.array([-2.0, 3.0, 0.7]), \
         np.array([1.8, 0.0, 1.0])  # fmt: skip
     rs, a_b, gain = 0.3, 8.0, 3.0
-
-    def h_of(t: float) -> float:
-        p, v = p0 + v0 * t + 0.5 * acc * t * t, v0 + acc * t
-        r = p - o
-        return r @ v + np.linalg.norm(v) * math.sqrt(r @ r - rs * rs)
-
-    assert h_of(0.0) > 0
+    h0, h_dot = _barrier_and_rate(
+        lambda r, v: r @ v + np.linalg.norm(v) * math.sqrt(r @ r - rs * rs), p0, v0, acc, o
+    )
+    assert h0 > 0
     a_mat, b_vec, cone = passing_rows((p0 - o)[None], v0, np.zeros(3), rs, a_b, gain)
     assert cone[0]
-    eps = 1e-5
-    h_dot = (h_of(eps) - h_of(-eps)) / (2 * eps)
-    assert a_mat[0] @ acc - b_vec[0] == pytest.approx(h_dot + gain * h_of(0.0), rel=1e-6)
+    assert a_mat[0] @ acc - b_vec[0] == pytest.approx(h_dot + gain * h0, rel=1e-6)
 
 
 @pytest.mark.parametrize("lag", [False, True])

@@ -148,8 +148,10 @@ class ScheduledDistillation(Distillation):
             raise ValueError(f"lr_final must be in (0, learning_rate = {learning_rate}], got {lr_final}")
         if lr_schedule_iterations < 1:
             raise ValueError(f"lr_schedule_iterations must be >= 1, got {lr_schedule_iterations}")
-        if replay_rollouts < 0 or not 0 <= replay_passes <= replay_rollouts or (replay_rollouts > 0) != (
-            replay_passes > 0
+        if (
+            replay_rollouts < 0
+            or not 0 <= replay_passes <= replay_rollouts
+            or (replay_rollouts > 0) != (replay_passes > 0)
         ):
             raise ValueError(
                 "need replay_rollouts >= 0 and 0 <= replay_passes <= replay_rollouts, both 0 or both > 0; got "

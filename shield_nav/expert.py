@@ -125,8 +125,18 @@ class ExpertConfig:
 
     def validate(self, prefix: str = "") -> None:
         """Positive lengths, gains and limits, naming the key."""
-        for name in ("horizon", "ds", "fd_step", "d_pref", "lat_accel", "brake_accel", "k_v", "lookahead_min",
-                     "flat_slope", "ff_window"):
+        for name in (
+            "horizon",
+            "ds",
+            "fd_step",
+            "d_pref",
+            "lat_accel",
+            "brake_accel",
+            "k_v",
+            "lookahead_min",
+            "flat_slope",
+            "ff_window",
+        ):
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",

@@ -68,9 +68,7 @@ def gap_metrics(student: np.ndarray, expert: np.ndarray) -> dict:
     return out
 
 
-def measure(
-    ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num_envs: int = 32, seed: int = 0
-) -> dict:
+def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num_envs: int = 32, seed: int = 0) -> dict:
     """Fly the student of ``ckpt`` ``steps`` steps in ``num_envs`` envs of its training family: :func:`gap_metrics`."""
     import torch
 
@@ -105,8 +103,15 @@ def measure(
             obs, _, dones, _ = env.step(act)
             model.reset(dones)
     out = gap_metrics(np.array(student), np.array(expert))
-    out.update(checkpoint=path, iteration=meta["iter"], speed=speed, level=level, steps=steps, num_envs=num_envs,
-               scene=f"{cfg.env.scenes.family}/{scene}")
+    out.update(
+        checkpoint=path,
+        iteration=meta["iter"],
+        speed=speed,
+        level=level,
+        steps=steps,
+        num_envs=num_envs,
+        scene=f"{cfg.env.scenes.family}/{scene}",
+    )
     return out
 
 

@@ -84,8 +84,9 @@ def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
         {
             "name": name,
             "deployable": model is not None,
-            "kind": "distilled" if cfg.runner.class_name == "DistillationRunner" else
-                    ("ppo" if model is not None else "privileged_teacher"),
+            "kind": "distilled"
+            if cfg.runner.class_name == "DistillationRunner"
+            else ("ppo" if model is not None else "privileged_teacher"),
             "source_run": os.path.relpath(run_dir),
             "source_checkpoint": os.path.basename(ckpt_path),
             "sha256": {f: _sha256(os.path.join(out, f)) for f in files},

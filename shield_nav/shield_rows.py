@@ -292,8 +292,9 @@ def _tighter_margin(ox: float, oy: float, oz: float, rx: float, ry: float, rz: f
     the arithmetic.
     """
     if k[15] > 0.5:  # braking
-        q0x, q0y, q0z, b0, qx, qy, qz, b1 = _braking_point_rows(ox, oy, oz, rx, ry, rz,
-                                                                math.sqrt(rx * rx + ry * ry + rz * rz), k, use_lag)
+        q0x, q0y, q0z, b0, qx, qy, qz, b1 = _braking_point_rows(
+            ox, oy, oz, rx, ry, rz, math.sqrt(rx * rx + ry * ry + rz * rz), k, use_lag
+        )
         return _pair_margin(q0x, q0y, q0z, b0, qx, qy, qz, b1, k[6], k[7], k[8])
     m = _margin(rx, ry, rz, k[0], k[1], k[2], k[6], k[7], k[8], k[12], alpha0, alpha1, k[14])
     if use_lag:

@@ -46,9 +46,7 @@ def record(duration: float = 4.5) -> list:
         for pos, vel, r_wb, cmd, depth in log.states:
             for i in range(len(pos)):
                 vid = np.array([4 * k + i])  # per-flight id: the lag's velocity history follows each flight
-                states.append(
-                    (pos[i : i + 1], vel[i : i + 1], r_wb[i : i + 1], cmd[i : i + 1], depth[i : i + 1], vid)
-                )
+                states.append((pos[i : i + 1], vel[i : i + 1], r_wb[i : i + 1], cmd[i : i + 1], depth[i : i + 1], vid))
     return states
 
 

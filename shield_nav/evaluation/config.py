@@ -215,7 +215,6 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
     return out
 
 
-
 def config_from_args(args: Any) -> tuple[EvalConfig, tuple[str, ...]]:
     """EvalConfig from eval.py's parsed arguments: the YAML, then ``--set``, then the dedicated flags.
 

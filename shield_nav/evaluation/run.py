@@ -304,7 +304,6 @@ def summarize(prep: Prepared, unit_results: list[dict]) -> dict:
     }
 
 
-
 def write_outputs(prep: Prepared, out_dir: str, units: list[UnitSpec]) -> dict:
     """Tables (md, csv, tex), trials.json, summary.json and figures from the unit files on disk."""
     results = load_units(out_dir, units)

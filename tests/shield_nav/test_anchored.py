@@ -226,15 +226,31 @@ def test_train_cli_fine_tunes_the_committed_student_and_a_resume_keeps_its_ancho
     """train.py end to end with the shipped config: the anchor is the committed student, tensorboard gets
     Loss/anchor, and a resume restores the same anchor from the checkpoint."""
     root = str(tmp_path / "logs")
-    small = ["--num-envs", "4", "--log-dir", root, "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]",
-             "runner.algorithm.num_mini_batches=2", "runner.critic_warmup_iterations=1", "runner.save_interval=1"]
+    small = [
+        "--num-envs",
+        "4",
+        "--log-dir",
+        root,
+        "--set",
+        "runner.num_steps_per_env=8",
+        "env.scenes.indices=[0,1]",
+        "runner.algorithm.num_mini_batches=2",
+        "runner.critic_warmup_iterations=1",
+        "runner.save_interval=1",
+    ]
 
     def run(*args):
         return subprocess.run([sys.executable, "train.py", *args], cwd=REPO, capture_output=True, text=True,
                               timeout=240)  # fmt: skip
 
-    res = run("--config", "configs/experiments/finetune_3ms_dijkstra_cbf.yaml", "--max-iterations", "2", *small,
-              "runner.actor_init=checkpoints/student/model.pt")  # its own start left the tree with the release
+    res = run(
+        "--config",
+        "configs/experiments/finetune_3ms_dijkstra_cbf.yaml",
+        "--max-iterations",
+        "2",
+        *small,
+        "runner.actor_init=checkpoints/student/model.pt",
+    )  # its own start left the tree with the release
     assert res.returncode == 0, res.stderr[-3000:]
     (run_name,) = os.listdir(os.path.join(root, "shield_nav"))
     run_dir = os.path.join(root, "shield_nav", run_name)

@@ -47,8 +47,13 @@ def test_hocbf_row_hand_computed():
 def test_sign_convention_matches_the_time_derivatives():
     # The paper's Bdot = 2 r.v and Bddot = 2|v|^2 + 2 r.a hold for r = p - o (obstacle -> vehicle).
     # Check against finite differences of B(t) = |p(t) - o|^2 - r_safe^2 along p(t) = p0 + v0 t + a t^2 / 2.
-    p0, v0, acc, o, rs = np.array([0.3, -1.0, 1.2]), np.array([4.0, 1.0, -0.5]), np.array([-2.0, 3.0, 0.7]), \
-        np.array([5.0, 0.5, 1.0]), 0.5
+    p0, v0, acc, o, rs = (
+        np.array([0.3, -1.0, 1.2]),
+        np.array([4.0, 1.0, -0.5]),
+        np.array([-2.0, 3.0, 0.7]),
+        np.array([5.0, 0.5, 1.0]),
+        0.5,
+    )
 
     def b_of(t: float) -> float:
         p = p0 + v0 * t + 0.5 * acc * t * t
@@ -690,9 +695,7 @@ def test_passing_row_is_the_first_order_cbf_of_the_cone_barrier():
     p0, v0, acc, o = np.array([0.3, -1.0, 1.2]), np.array([6.0, 1.0, -0.5]), np.array([-2.0, 3.0, 0.7]), \
         np.array([1.8, 0.0, 1.0])  # fmt: skip
     rs, a_b, gain = 0.3, 8.0, 3.0
-    h0, h_dot = _barrier_and_rate(
-        lambda r, v: r @ v + np.linalg.norm(v) * math.sqrt(r @ r - rs * rs), p0, v0, acc, o
-    )
+    h0, h_dot = _barrier_and_rate(lambda r, v: r @ v + np.linalg.norm(v) * math.sqrt(r @ r - rs * rs), p0, v0, acc, o)
     assert h0 > 0
     a_mat, b_vec, cone = passing_rows((p0 - o)[None], v0, np.zeros(3), rs, a_b, gain)
     assert cone[0]

@@ -232,8 +232,9 @@ def _is_pipeline(name):
     return is_pipeline_file(os.path.join(REPO, "configs", "train", name))
 
 
-TRAIN_CONFIGS = sorted(f for f in os.listdir(os.path.join(REPO, "configs", "train"))
-                       if f.endswith(".yaml") and not _is_pipeline(f))  # staged recipes: tests/.../test_pipeline.py
+TRAIN_CONFIGS = sorted(
+    f for f in os.listdir(os.path.join(REPO, "configs", "train")) if f.endswith(".yaml") and not _is_pipeline(f)
+)  # staged recipes: tests/.../test_pipeline.py
 
 
 @pytest.mark.parametrize("name", TRAIN_CONFIGS)

@@ -36,6 +36,7 @@ from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
 from envs.navigation import NavigationEnv
+from envs.scenes.families import is_training_family
 
 
 class CommandFilter(Protocol):
@@ -105,6 +106,11 @@ class RslRlVecEnv(VecEnv):
         if self.expert is not None:
             data["expert"] = torch.from_numpy(np.asarray(self.expert(self.env), dtype=np.float32))
         return TensorDict(data, batch_size=[self.num_envs], device=self.device)
+
+    @property
+    def curriculum_active(self) -> bool:
+        """Whether resets draw each env's scene from its curriculum level (a training family with the curriculum on)."""
+        return bool(self.env.cfg.curriculum.enabled and is_training_family(self.env.cfg.scenes.family))
 
     @property
     def curriculum_levels(self) -> list[int]:

@@ -246,11 +246,29 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     return ckpt.get("infos") or {}
 
 
-def _restore_levels(env: Any, levels: list[int] | None) -> None:
-    """Put the envs back on the curriculum levels a checkpoint stored (same env count only)."""
-    if levels is not None and hasattr(env, "set_curriculum_levels") and len(levels) == env.num_envs:
-        env.set_curriculum_levels(levels)
-        print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
+def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: bool = False) -> None:
+    """Put the envs back on the curriculum levels a checkpoint stored (same env count only).
+
+    ``strict`` (a resumed run): levels that do not fit the scene list raise. Otherwise (a student or actor taken
+    from another run) they are used only where this env runs a curriculum and every level names one of its scenes,
+    and a line says why they were not.
+    """
+    if levels is None or not hasattr(env, "set_curriculum_levels") or len(levels) != env.num_envs:
+        return
+    if not strict:
+        if not getattr(env, "curriculum_active", True):
+            print(f"[train] curriculum off: the levels stored in {source} are not used", flush=True)
+            return
+        num_scenes = len(env.env.scenes)
+        if max(levels) >= num_scenes:
+            print(
+                f"[train] the levels stored in {source} reach {max(levels)}, beyond this scene list "
+                f"(0..{num_scenes - 1}): not used",
+                flush=True,
+            )
+            return
+    env.set_curriculum_levels(levels)
+    print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
 
 
 def episode_means(ep_extras: list[dict], keys: tuple[str, ...]) -> dict[str, tuple[float, int]]:
@@ -341,7 +359,7 @@ def train(
     if cfg.runner.class_name == "DistillationRunner" and resume is None and cfg.runner.student_init:
         infos = _init_student(runner, cfg.runner.student_init, device)
         print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
-        _restore_levels(env, infos.get("curriculum_levels"))
+        _restore_levels(env, infos.get("curriculum_levels"), cfg.runner.student_init)
     if cfg.runner.actor_init and resume is None:
         ckpt = torch.load(cfg.runner.actor_init, map_location=device, weights_only=False)
         weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict")
@@ -349,7 +367,7 @@ def train(
             raise ConfigError(f"config key 'runner.actor_init': {cfg.runner.actor_init!r} holds no actor or student")
         runner.alg._raw_actor.load_state_dict(weights)
         print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
-        _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"))
+        _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"), cfg.runner.actor_init)
     if resume is not None:
         # A scripted expert saved no teacher weights (an empty dict): load everything else.
         load_cfg = {"student": True, "optimizer": True, "iteration": True} if cfg.runner.expert.kind else None
@@ -358,7 +376,7 @@ def train(
         runner.current_learning_iteration = start_it
         runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))
         runner.logger.tot_time = float(infos.get("tot_time", 0.0))
-        _restore_levels(env, infos.get("curriculum_levels"))
+        _restore_levels(env, infos.get("curriculum_levels"), str(resume), strict=True)
         print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
     remaining = cfg.max_iterations - start_it
     # Critic warm-up: iterations [0, warmup_end) run with a frozen actor (also when a run resumes inside them).

@@ -167,6 +167,14 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
         if "normalizer" not in k:  # the observation normaliser keeps updating its running statistics
             torch.testing.assert_close(warm[k], v)
 
+    # A warm start onto uniform sampling over one scene (curriculum off): the stored levels, which may name the
+    # second scene, are not installed (they used to raise when they did not fit the new scene list).
+    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", *small[:-1], "env.scenes.indices=[1]",
+                     "env.curriculum.enabled=false", "name=uniform", f"runner.teacher_checkpoint={teacher_ckpt}",
+                     f"runner.student_init={os.path.join(student_dir, 'model_0.pt')}"])  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "curriculum off: the levels stored in" in res.stdout and "curriculum levels restored" not in res.stdout
+
     # Packaging: the teacher without exports (not deployable), the student with an ONNX that matches its weights.
     from shield_nav.package import actor_from_checkpoint, package
 

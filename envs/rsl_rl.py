@@ -36,7 +36,6 @@ from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
 from envs.navigation import NavigationEnv
-from envs.scenes.families import is_training_family
 
 
 class CommandFilter(Protocol):
@@ -109,8 +108,8 @@ class RslRlVecEnv(VecEnv):
 
     @property
     def curriculum_active(self) -> bool:
-        """Whether resets draw each env's scene from its curriculum level (a training family with the curriculum on)."""
-        return bool(self.env.cfg.curriculum.enabled and is_training_family(self.env.cfg.scenes.family))
+        """Whether resets draw each env's scene from its curriculum level (:attr:`NavigationEnv.curriculum_active`)."""
+        return self.env.curriculum_active
 
     @property
     def curriculum_levels(self) -> list[int]:

@@ -201,7 +201,7 @@ class NavigationEnv(VectorEnv):
             self.sim_time = 0.0  # moving obstacles restart with a full reset (their clock is shared per scene)
         if seed is not None or not hasattr(self, "_started"):
             self._started = True
-            if self.cfg.curriculum.enabled and is_training_family(self.cfg.scenes.family):
+            if self.curriculum_active:
                 hi = min(self.cfg.curriculum.initial_max_level, len(self.scenes) - 1)
                 self.level_buf[:] = self._rng.integers(0, hi + 1, self.num_envs)
             self.fail_streak_buf[:] = 0
@@ -330,6 +330,11 @@ class NavigationEnv(VectorEnv):
         elif self._anchor_phi:
             phi = self.anchor_fields.geodesic(self.scene_id_buf, self.anchor_buf, pos)
         self._field_cache = (pos, esdf, grad, phi)
+
+    @property
+    def curriculum_active(self) -> bool:
+        """Whether resets draw each env's scene from its level (a training family with the curriculum on)."""
+        return bool(self.cfg.curriculum.enabled and is_training_family(self.cfg.scenes.family))
 
     @property
     def local_pos(self) -> np.ndarray:
@@ -466,10 +471,7 @@ class NavigationEnv(VectorEnv):
         if m == 0:
             return
         if scene_ids is None:
-            if cfg.curriculum.enabled and is_training_family(cfg.scenes.family):
-                scene_ids = self.level_buf[env_ids]
-            else:
-                scene_ids = rng.integers(0, len(self.scenes), m)
+            scene_ids = self.level_buf[env_ids] if self.curriculum_active else rng.integers(0, len(self.scenes), m)
         scene_ids = np.asarray(scene_ids, dtype=np.int64)
         if scene_ids.min() < 0 or scene_ids.max() >= len(self.scenes):
             raise ValueError(f"scene_ids must be in 0..{len(self.scenes) - 1}")
@@ -566,9 +568,9 @@ class NavigationEnv(VectorEnv):
 
     def _update_curriculum(self, env_ids: np.ndarray, succeeded: np.ndarray) -> None:
         """Up a level on success; down after ``demote_after`` consecutive failures; random level past the top."""
-        c = self.cfg.curriculum
-        if not (c.enabled and is_training_family(self.cfg.scenes.family)):
+        if not self.curriculum_active:
             return
+        c = self.cfg.curriculum
         top = len(self.scenes) - 1
         lvl = self.level_buf[env_ids]
         streak = np.where(succeeded, 0, self.fail_streak_buf[env_ids] + 1)

@@ -256,7 +256,7 @@ def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: boo
     if levels is None or not hasattr(env, "set_curriculum_levels") or len(levels) != env.num_envs:
         return
     if not strict:
-        if not getattr(env, "curriculum_active", True):
+        if not env.curriculum_active:
             print(f"[train] curriculum off: the levels stored in {source} are not used", flush=True)
             return
         num_scenes = len(env.env.scenes)

@@ -169,7 +169,7 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
 
     # A warm start onto uniform sampling over one scene (curriculum off): the stored levels, which may name the
     # second scene, are not installed (they used to raise when they did not fit the new scene list).
-    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", *small[:-1], "env.scenes.indices=[1]",
+    res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", *small, "env.scenes.indices=[1]",
                      "env.curriculum.enabled=false", "name=uniform", f"runner.teacher_checkpoint={teacher_ckpt}",
                      f"runner.student_init={os.path.join(student_dir, 'model_0.pt')}"])  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]

@@ -1,6 +1,6 @@
 """How closely does a depth student imitate its expert, and how does it miss? Per-dimension imitation metrics.
 
-``python -m shield_nav.imitation checkpoints/student [--speed 3] [--level 8] [--steps 400] [--json]``
+``python -m shield_nav.imitation checkpoints/student [--speed 3] [--level 8] [--family F] [--steps 400] [--json]``
 
 flies the student's own policy on its training scene family (the DAgger state distribution; training seeds only,
 no evaluation scene is touched) at one target speed and curriculum level. It labels every visited state with the
@@ -18,6 +18,12 @@ pitch, yaw):
 
 A large wrong-sign share means the student and its expert chose different sides around obstacles. Averaging the
 two sides is the failure a multi-hypothesis head addresses (:mod:`shield_nav.distillation`).
+
+With the planning expert the samples are also split by the expert's route
+(:func:`shield_nav.route_view.route_away`): steps where the route 3 m ahead lies more than 45 deg off the goal's
+bearing (``away``: a way the goal's direction does not suggest, chosen by the map beyond the view) and the rest
+(``toward``), each with the same metrics. ``--family`` flies another training family, e.g. the box fields of
+``train_shapes_perlin`` (indices 16-23).
 """
 
 from __future__ import annotations
@@ -27,6 +33,9 @@ import json
 import os
 
 import numpy as np
+
+from shield_nav.expert import PlannerController
+from shield_nav.route_view import route_away
 
 ACTION_NAMES = ("thrust", "roll", "pitch", "yaw")
 HARD_TURN = 0.3
@@ -68,8 +77,13 @@ def gap_metrics(student: np.ndarray, expert: np.ndarray) -> dict:
     return out
 
 
-def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num_envs: int = 32, seed: int = 0) -> dict:
-    """Fly the student of ``ckpt`` ``steps`` steps in ``num_envs`` envs of its training family: :func:`gap_metrics`."""
+def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num_envs: int = 32, seed: int = 0,
+            family: str | None = None) -> dict:  # fmt: skip
+    """Fly the student of ``ckpt`` ``steps`` steps in ``num_envs`` envs of its training family: :func:`gap_metrics`.
+
+    ``family``: another training family to fly instead (``level`` is then that family's scene index, at its default
+    seed), e.g. ``train_shapes_perlin`` for box fields a student never trained on.
+    """
     import torch
 
     from shield_nav.package import actor_from_checkpoint
@@ -81,6 +95,15 @@ def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num
         raise ValueError(f"{path}: not a depth student")
     if not cfg.runner.expert.kind:
         raise ValueError(f"{path}: the checkpoint was not distilled from a scripted expert (runner.expert.kind)")
+    if family is not None:
+        from envs.scenes import FAMILIES
+        from envs.scenes.families import is_training_family
+
+        if family not in FAMILIES or not is_training_family(family):
+            train = sorted(f for f in FAMILIES if is_training_family(f))
+            raise ValueError(f"--family must be a training family ({', '.join(train)}), got {family!r}")
+        cfg.env.scenes.family, cfg.env.scenes.seed = family, None
+        cfg.env.scenes.indices = list(range(FAMILIES[family].size))
     if not 0 <= level < len(cfg.env.scenes.indices):
         raise ValueError(f"level must be in [0, {len(cfg.env.scenes.indices)}), got {level}")
     scene = cfg.env.scenes.indices[level]
@@ -94,15 +117,25 @@ def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num
     env = make_env(cfg)
     env.set_curriculum_levels([0] * num_envs)
     obs = env.get_observations()
-    student, expert = [], []
+    planner = getattr(env.expert, "controller", None)
+    planner = planner if isinstance(planner, PlannerController) else None
+    student, expert, away = [], [], []
     with torch.no_grad():
         for _ in range(steps):
             act = model(obs)
             student.append(act.numpy().copy())
             expert.append(obs["expert"].numpy().copy())
+            if planner is not None:  # the route the label was computed on (the expert ran on this observation)
+                away.append(route_away(planner.last["path"], env.env.goal_buf - env.env.local_pos))
             obs, _, dones, _ = env.step(act)
             model.reset(dones)
     out = gap_metrics(np.array(student), np.array(expert))
+    if planner is not None:
+        # Split by where the expert's route goes: more than 45 deg off the goal's bearing 3 m along (a way the goal's
+        # direction does not suggest, chosen by the map beyond the view) or not.
+        s, e, a = np.concatenate(student), np.concatenate(expert), np.concatenate(away)
+        out["away_share"] = float(a.mean())
+        out["split"] = {k: gap_metrics(s[m], e[m]) for k, m in (("away", a), ("toward", ~a)) if m.sum() >= 2}
     out.update(
         checkpoint=path,
         iteration=meta["iter"],
@@ -135,6 +168,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--level", type=int, default=8, help="curriculum level = training scene index (default 8)")
     ap.add_argument("--steps", type=int, default=400, help="policy steps of 10 ms (default 400)")
     ap.add_argument("--num-envs", type=int, default=32, help="parallel envs (default 32)")
+    ap.add_argument(
+        "--family",
+        default=None,
+        help="fly this training family instead of the checkpoint's (--level = its scene index)",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true", help="print one JSON line instead of a table")
     args = ap.parse_args(argv)
@@ -143,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps < 2 or args.num_envs < 1 or args.speed <= 0:
         ap.error(f"need --steps >= 2, --num-envs >= 1 and --speed > 0, got {args.steps}, {args.num_envs}, {args.speed}")
     try:
-        res = measure(args.checkpoint, args.speed, args.level, args.steps, args.num_envs, args.seed)
+        res = measure(args.checkpoint, args.speed, args.level, args.steps, args.num_envs, args.seed, args.family)
     except ValueError as err:
         ap.error(str(err))
     if args.json:
@@ -152,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{res['checkpoint']} (iteration {res['iteration']}), {res['speed']:g} m/s, level {res['level']} "
               f"({res['scene']}), {res['samples']} samples: MSE {res['mse']:.4f}")  # fmt: skip
         print(format_table(res))
+        for key, sub in res.get("split", {}).items():
+            share = res["away_share"] if key == "away" else 1.0 - res["away_share"]
+            print(f"\nsteps where the expert's route turns {key} the goal ({100 * share:.0f} % of samples, "
+                  f"{sub['samples']}): MSE {sub['mse']:.4f}")  # fmt: skip
+            print(format_table(sub))
     return 0
 
 

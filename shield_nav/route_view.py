@@ -94,7 +94,6 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
         env.reset(seed=seed)
         planner = PlannerController(BaselineConfig())
         ec = planner.ec
-        k_away = max(1, round(away_at_m / ec.ds))
         ids = np.zeros(num_envs, dtype=np.int64)
 
         def esdf(pts: np.ndarray, env: NavigationEnv = env, ids: np.ndarray = ids) -> np.ndarray:
@@ -113,8 +112,7 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
             seen_all.append(seen_m)
             occ_all.append(occluded)
             short_all.append(seen_m < stop)
-            away_all.append(bearing_deg(path[:, min(k_away, path.shape[1] - 1)] - path[:, 0],
-                                        env.goal_buf - env.local_pos) > 45.0)  # fmt: skip
+            away_all.append(route_away(path, env.goal_buf - env.local_pos, away_at_m))
             env.step(np.zeros((num_envs, 4)), commands=cmd)
         s = np.concatenate(seen_all)
         occ = np.concatenate(occ_all)
@@ -134,6 +132,17 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
 def _no_obstacles(pts: np.ndarray) -> np.ndarray:
     """An ESDF of empty space: :func:`visible_samples` with it tests the frustum and range only."""
     return np.full(pts.shape[:2], np.inf)
+
+
+def route_away(path: np.ndarray, to_goal: np.ndarray, at_m: float = 3.0, limit_deg: float = 45.0) -> np.ndarray:
+    """(N,) bool: the path's sample nearest ``at_m`` along it lies more than ``limit_deg`` off ``to_goal``'s bearing.
+
+    Paths (N, K+1, 3) start at the vehicle; ``to_goal`` (N, 3) is the goal minus the vehicle's position.
+    """
+    seglen = np.linalg.norm(np.diff(path, axis=1), axis=2)
+    cum = np.concatenate((np.zeros((len(path), 1)), np.cumsum(seglen, axis=1)), axis=1)
+    k = np.argmin(np.abs(cum - at_m), axis=1)
+    return bearing_deg(path[np.arange(len(path)), k] - path[:, 0], to_goal) > limit_deg
 
 
 def bearing_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

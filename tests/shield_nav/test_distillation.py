@@ -369,6 +369,12 @@ def test_imitation_cli_on_the_committed_student():
     assert out["samples"] == 80 and out["level"] == 2 and out["speed"] == 3.0
     per = out["per_dim"]
     assert out["mse"] == pytest.approx(np.mean([per[k]["mse"] for k in per]))
+    # The student was distilled from the planning expert: its samples are split by the expert's route, and the
+    # two parts hold every sample in the share reported.
+    assert 0.0 <= out["away_share"] <= 1.0
+    assert sum(sub["samples"] for sub in out["split"].values()) == 80
+    if "away" in out["split"]:
+        assert out["split"]["away"]["samples"] == pytest.approx(80 * out["away_share"])
     res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr

@@ -64,3 +64,20 @@ def test_cli_names_a_seed_outside_the_family_split(capsys):
     with pytest.raises(SystemExit):
         route_view.main(["--scenes", "ablation:0", "--scene-seed", "0", "--steps", "1"])
     assert "seed 0 is not in the eval seed range" in capsys.readouterr().err
+
+
+def test_route_away_by_hand():
+    from shield_nav.route_view import route_away
+
+    ds = 0.5
+    straight = _straight(n=9, ds=ds)[0]  # along +x, 4 m
+    bent = straight.copy()
+    bent[4:, 1] = (np.arange(5) + 1) * ds  # from sample 4 (2 m) on, steps of 0.5 m along +y: turns left 90 deg
+    bent[4:, 0] = 1.5
+    paths = np.stack((straight, bent, bent))
+    # Goal bearings: +x for the first two; for the third, 60 deg left of +x.
+    to_goal = np.array([[10.0, 0.0, 0.0], [10.0, 0.0, 0.0], [5.0, 5.0 * np.sqrt(3.0), 0.0]])
+    # 2.5 m along the bent path is sample 5 at (1.5, 1.0): 33.7 deg off +x, 26.3 deg off the third's 60 deg.
+    assert route_away(paths, to_goal, at_m=2.5).tolist() == [False, False, False]
+    # 3.5 m along: sample 7 at (1.5, 2.0): 53.1 deg off +x -> away; 6.9 deg off 60 deg -> not.
+    assert route_away(paths, to_goal, at_m=3.5).tolist() == [False, True, False]

@@ -378,6 +378,10 @@ def test_imitation_cli_on_the_committed_student():
     res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr
+    # An evaluation family is refused by name (its scenes are held out), before any flight.
+    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
+                          "--family", "benchmark"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert res.returncode == 2 and "must be a training family" in res.stderr and "'benchmark'" in res.stderr
 
 
 def test_imitation_flies_the_requested_level_when_the_checkpoint_trained_without_curriculum(monkeypatch):

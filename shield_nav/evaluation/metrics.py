@@ -27,16 +27,24 @@ def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
 
 
 def trajectory_metrics(
-    pos: np.ndarray, speed: np.ndarray, esdf: np.ndarray, phi_start: float, phi_end: float
+    pos: np.ndarray,
+    speed: np.ndarray,
+    esdf: np.ndarray,
+    phi_start: float,
+    phi_end: float,
+    top: float = float("inf"),
+    radius: float = 0.0,
 ) -> dict[str, float]:
     """Per-trial geometry of one trajectory.
 
-    Inputs: positions (T+1, 3) (start included), speeds |v| (T,) after each step, and the ESDF (T+1,) at those
-    positions.
+    Inputs: positions (T+1, 3) (start included), speeds |v| (T,) after each step, the ESDF (T+1,) at those
+    positions, the height of the scene's obstacles ``top`` and the vehicle's collision radius.
 
     path_length = sum_t |p_{t+1} - p_t|; mean_speed = mean_t |v_t|; clearance_mean/min = mean/min of the ESDF;
     path_ratio = path_length / (Phi(start) - Phi(end)) (Phi: geodesic distance to the goal region; NaN when the
-    trajectory made no geodesic progress).
+    trajectory made no geodesic progress); flew_over = 1.0 when the vehicle's sphere cleared the obstacles' top at
+    some point (max z > top + radius: in the 1 m above the obstacles that the volume allows, it could pass over
+    any of them), else 0.0.
     """
     steps = np.diff(pos, axis=0)
     length = float(np.linalg.norm(steps, axis=1).sum())
@@ -48,6 +56,7 @@ def trajectory_metrics(
         "clearance_min": float(np.min(esdf)),
         "geodesic_progress": float(progress),
         "path_ratio": float(length / progress) if progress > 1e-6 else float("nan"),
+        "flew_over": float(np.max(pos[:, 2]) > top + radius),
     }
 
 
@@ -79,6 +88,8 @@ def aggregate(trials: list[dict]) -> dict[str, Any]:
         "clearance_mean": _nanmean([t["metrics"]["clearance_mean"] for t in trials]),
         "clearance_min": float(np.min([t["metrics"]["clearance_min"] for t in trials])) if n else float("nan"),
         "path_ratio": _nanmean([t["metrics"]["path_ratio"] for t in succ]),
+        # Successes that flew over the obstacles (NaN for trial files written before the metric existed).
+        "over_top": _nanmean([t["metrics"].get("flew_over") for t in succ]),
     }
     if sh:
         out.update(

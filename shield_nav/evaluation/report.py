@@ -80,6 +80,7 @@ DETAIL_COLUMNS = [
     ("clear mean", "clearance_mean", lambda c: _num(c["clearance_mean"])),
     ("clear min", "clearance_min", lambda c: _num(c["clearance_min"])),
     ("path/geo", "path_ratio", lambda c: _num(c["path_ratio"], ".3f")),
+    ("over top % of SR", "over_top", lambda c: _pct(c.get("over_top"))),
     ("shield act %", "shield_active", lambda c: _pct(c.get("shield_active"))),
     ("corr mean", "corr_mean", lambda c: _num(c.get("corr_mean"))),
     ("corr max", "corr_max", lambda c: _num(c.get("corr_max"))),
@@ -133,8 +134,8 @@ def latex_table(prep: Prepared, summary: dict) -> str:
 def csv_table(prep: Prepared, summary: dict) -> str:
     """One CSV line per (configuration, speed) cell with every metric."""
     keys = ["n", "successes", "success_rate", "sr_lo", "sr_hi", "collision_rate", "timeout_rate", "oob_rate", "vel",
-            "clearance_mean", "clearance_min", "path_ratio", "shield_active", "corr_mean", "corr_max", "relaxed",
-            "qp_us_mean", "qp_us_max", "shield_us_mean"]  # fmt: skip
+            "clearance_mean", "clearance_min", "path_ratio", "over_top", "shield_active", "corr_mean", "corr_max",
+            "relaxed", "qp_us_mean", "qp_us_max", "shield_us_mean"]  # fmt: skip
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["configuration", "label", "speed", *keys])

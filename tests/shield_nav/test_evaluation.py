@@ -69,11 +69,18 @@ def test_trajectory_metrics_hand_made():
     assert m["clearance_min"] == pytest.approx(0.25)
     assert m["path_ratio"] == pytest.approx(10.0 / 8.0)  # 10 m flown for 8 m of geodesic progress
     assert math.isnan(E.trajectory_metrics(pos, np.ones(3), esdf, 5.0, 6.0)["path_ratio"])  # no progress
+    # Over the obstacles: the flight peaks at z = 1; obstacles 0.7 m tall, vehicle radius 0.2 -> its sphere cleared
+    # them (1 > 0.9); 0.8 m tall -> it did not (1 = 1.0 is not above).
+    assert m["flew_over"] == 0.0  # no top given: nothing to fly over
+    assert E.trajectory_metrics(pos, np.ones(3), esdf, 20.0, 12.0, top=0.7, radius=0.2)["flew_over"] == 1.0
+    assert E.trajectory_metrics(pos, np.ones(3), esdf, 20.0, 12.0, top=0.8, radius=0.2)["flew_over"] == 0.0
 
 
-def _trial(outcome, speed, clear_mean, clear_min, ratio, shield=None):
+def _trial(outcome, speed, clear_mean, clear_min, ratio, shield=None, over=None):
     t = {"outcome": outcome, "metrics": {"mean_speed": speed, "clearance_mean": clear_mean,
                                          "clearance_min": clear_min, "path_ratio": ratio}}  # fmt: skip
+    if over is not None:
+        t["metrics"]["flew_over"] = over
     if shield:
         t["shield"] = shield
     return t
@@ -102,6 +109,11 @@ def test_aggregate_hand_made():
     assert c["relaxed"] == pytest.approx(4 / 300)
     assert c["qp_us_mean"] == pytest.approx(3500.0 / 50) and c["qp_us_max"] == 300.0
     assert (c["sr_lo"], c["sr_hi"]) == pytest.approx(E.wilson_interval(2, 4))
+    assert math.isnan(c["over_top"])  # trial files from before the metric: unknown, not 0
+    # Over the top counts successes only: one of the two successes flew over; the collision's flight does not count.
+    trials = [_trial("success", 4.0, 1.0, 0.5, 1.1, over=1.0), _trial("success", 5.0, 0.8, 0.3, 1.3, over=0.0),
+              _trial("collision", 9.0, 0.6, 0.1, float("nan"), over=1.0)]  # fmt: skip
+    assert E.aggregate(trials)["over_top"] == pytest.approx(0.5)
 
 
 def test_accel_to_command_and_free_distance_by_hand():

@@ -192,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
         print(format_table(res))
         for key, sub in res.get("split", {}).items():
             share = res["away_share"] if key == "away" else 1.0 - res["away_share"]
-            print(f"\nsteps where the expert's route turns {key} the goal ({100 * share:.0f} % of samples, "
+            where = "away from" if key == "away" else "toward"
+            print(f"\nsteps where the expert's route turns {where} the goal ({100 * share:.0f} % of samples, "
                   f"{sub['samples']}): MSE {sub['mse']:.4f}")  # fmt: skip
             print(format_table(sub))
     return 0

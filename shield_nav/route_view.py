@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
 import numpy as np
 
@@ -54,8 +55,10 @@ def _parse_scenes(text: str) -> tuple[str, list[int]]:
 
 
 def seen_prefix(path: np.ndarray, seen: np.ndarray, in_fov: np.ndarray, near_m: float = 0.0,
-                ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Arc length (N,) of each path's seen prefix, and whether its first unseen sample is occluded (N,) bool.
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Arc length (N,) of each path's seen prefix, whether its first unseen sample is occluded, whether it is whole.
+
+    Returns ``(seen_m, occluded, whole)``: ``whole`` (N,) bool marks paths seen to their last sample.
 
     Args:
         path: Paths (N, K+1, 3).
@@ -74,7 +77,7 @@ def seen_prefix(path: np.ndarray, seen: np.ndarray, in_fov: np.ndarray, near_m: 
     whole = last == path.shape[1] - 1
     first_unseen = np.minimum(last + 1, path.shape[1] - 1)
     occluded = ~whole & in_fov[rows, first_unseen]
-    return cum[rows, last], occluded
+    return cum[rows, last], occluded, whole
 
 
 def measure(family: str, indices: list[int], scene_seed: int | None, speed: float, steps: int, num_envs: int,
@@ -99,24 +102,25 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
         def esdf(pts: np.ndarray, env: NavigationEnv = env, ids: np.ndarray = ids) -> np.ndarray:
             return env.field_stack.esdf(np.repeat(ids, pts.shape[1]), pts.reshape(-1, 3)).reshape(pts.shape[:2])
 
-        seen_all, occ_all, short_all, away_all = [], [], [], []
+        seen_all, occ_all, whole_all, short_all, away_all = [], [], [], [], []
         for _ in range(steps):
             cmd = planner.commands(env)
             path = planner.last["path"]
             cam_pos, R_wc = camera_poses(env.cfg.camera, env.local_pos, env.vehicles.R_wb)
             seen = visible_samples(path, cam_pos, R_wc, env.cfg.camera, esdf, ec.los_step)
             in_fov = visible_samples(path, cam_pos, R_wc, env.cfg.camera, _no_obstacles, ec.los_step)
-            seen_m, occluded = seen_prefix(path, seen, in_fov, near_m)
+            seen_m, occluded, whole = seen_prefix(path, seen, in_fov, near_m)
             v = np.linalg.norm(env.vehicles.vel_w, axis=1)
             stop = v * ec.lag_s + v**2 / (2.0 * ec.brake_accel) + margin_m
             seen_all.append(seen_m)
             occ_all.append(occluded)
+            whole_all.append(whole)
             short_all.append(seen_m < stop)
             away_all.append(route_away(path, env.goal_buf - env.local_pos, away_at_m))
             env.step(np.zeros((num_envs, 4)), commands=cmd)
         s = np.concatenate(seen_all)
         occ = np.concatenate(occ_all)
-        unseen_end = s < ec.horizon - 1e-6
+        unseen_end = ~np.concatenate(whole_all)
         scenes[str(scene)] = {
             "samples": len(s),
             "seen_m_median": float(np.median(s)),
@@ -125,6 +129,9 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
             "occluded_share": float(occ[unseen_end].mean()) if unseen_end.any() else 0.0,
             "away": float(np.concatenate(away_all).mean()),
         }
+        print(f"[route_view] {family}/{scene} at {speed:g} m/s: {len(s)} samples, seen route median "
+              f"{scenes[str(scene)]['seen_m_median']:.1f} m ({len(scenes)} of {len(indices)} scenes)",
+              file=sys.stderr, flush=True)  # fmt: skip
     return {"family": family, "scene_seed": scene_seed, "speed": speed, "steps": steps, "num_envs": num_envs,
             "margin_m": margin_m, "near_m": near_m, "away_at_m": away_at_m, "scenes": scenes}  # fmt: skip
 

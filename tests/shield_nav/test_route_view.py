@@ -21,11 +21,12 @@ def test_seen_prefix_by_hand():
     in_fov = np.array([[1, 1, 1, 1, 1, 1],  # sample 3 in the frustum: occluded
                        [1, 1, 1, 1, 1, 1],
                        [1, 0, 1, 1, 1, 1]], dtype=bool)  # fmt: skip
-    m, occ = seen_prefix(path, seen, in_fov)
+    m, occ, whole = seen_prefix(path, seen, in_fov)
     np.testing.assert_allclose(m, [1.0, 2.5, 0.0])
     assert occ.tolist() == [True, False, False]  # a whole path is not occluded; row 3 left the frustum
+    assert whole.tolist() == [False, True, False]
     # Samples nearer than 0.6 m along the path count as seen: row 3's sample 1 (0.5 m) no longer ends its prefix.
-    m, occ = seen_prefix(path, seen, in_fov, near_m=0.6)
+    m, occ, whole = seen_prefix(path, seen, in_fov, near_m=0.6)
     np.testing.assert_allclose(m, [1.0, 2.5, 2.5])
 
 

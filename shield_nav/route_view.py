@@ -36,22 +36,9 @@ import sys
 import numpy as np
 
 from envs.camera.model import camera_poses
-from envs.scenes import make_scene
+from envs.scenes import FAMILIES, make_scene
+from shield_nav.evaluation.config import EvalError, parse_scenes
 from shield_nav.expert import PlannerController, visible_samples
-
-
-def _parse_scenes(text: str) -> tuple[str, list[int]]:
-    """``FAMILY:I-J,K`` -> (family, indices)."""
-    family, _, spec = text.partition(":")
-    if not family or not spec:
-        raise ValueError(f"--scenes must be FAMILY:INDICES (e.g. benchmark:0-15), got {text!r}")
-    out: list[int] = []
-    for part in spec.split(","):
-        lo, _, hi = part.partition("-")
-        if not lo.isdigit() or (hi and not hi.isdigit()):
-            raise ValueError(f"--scenes: bad index range {part!r} in {text!r}")
-        out.extend(range(int(lo), int(hi or lo) + 1))
-    return family, out
 
 
 def seen_prefix(path: np.ndarray, seen: np.ndarray, in_fov: np.ndarray, near_m: float = 0.0,
@@ -175,7 +162,9 @@ def format_table(res: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
     ap = argparse.ArgumentParser(prog="python -m shield_nav.route_view", description=__doc__.split("\n")[0])
-    ap.add_argument("--scenes", default="benchmark:0-15", help="FAMILY:INDICES (default benchmark:0-15)")
+    ap.add_argument(
+        "--scenes", default="benchmark:0-15", help="FAMILY or FAMILY:INDICES, as eval.py (default benchmark:0-15)"
+    )
     ap.add_argument(
         "--scene-seed",
         type=lambda t: None if t == "default" else int(t),
@@ -194,8 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON line instead of a table")
     args = ap.parse_args(argv)
     try:
-        family, indices = _parse_scenes(args.scenes)
-    except ValueError as err:
+        sel = parse_scenes(args.scenes)  # the eval CLI's syntax: FAMILY (all of it) or FAMILY:INDICES
+        family, indices = sel.family, sel.indices or list(range(FAMILIES[sel.family].size))
+    except EvalError as err:
         ap.error(str(err))
     bad_speed = not (args.speed > 0 and math.isfinite(args.speed))
     if args.steps < 1 or args.num_envs < 1 or bad_speed or args.margin < 0 or args.near < 0:

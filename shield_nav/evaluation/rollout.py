@@ -223,11 +223,11 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     records = []
     every = cfg.trajectory_every
     dt = env.cfg.vehicle.command_dt
+    top, radius = float(env.scenes[0].bounds_hi[2]), env.cfg.vehicle.airframe.collision_radius  # one scene per unit
     for i, trial in enumerate(trials):
         T = int(end_step[i])
         pos_i = P[: T + 1, i]
         phi_end = float(env.field_stack.geodesic(np.zeros(1, np.int64), pos_i[-1:])[0])
-        top, radius = float(env.scenes[0].bounds_hi[2]), env.cfg.vehicle.airframe.collision_radius
         m = trajectory_metrics(pos_i, V[:T, i], E[: T + 1, i], float(phi_start[i]), phi_end, top, radius)
         m["duration"] = T * dt
         m["final_goal_dist"] = float(np.linalg.norm(pos_i[-1] - np.asarray(trial["goal"])))

@@ -3,7 +3,7 @@
 See ``python train.py --help`` and docs/training.md. The logic lives in :mod:`shield_nav.training`.
 """
 
-from shield_nav.training import main
+from shield_nav.training.cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

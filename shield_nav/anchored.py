@@ -50,12 +50,12 @@ from rsl_rl.utils import unpad_trajectories
 from tensordict import TensorDict
 from torch import nn
 
+from shield_nav.training.config import ANCHOR_TARGETS
+
 __all__ = ["ANCHOR_KEY", "ANCHOR_TARGETS", "AnchoredPPO", "anchor_loss"]
 
 ANCHOR_KEY = "anchor_mean"
 """Rollout-storage key of the reference actor's mean action (never an observation group of a model)."""
-ANCHOR_TARGETS = ("actor_init", "expert")
-"""What the actor is held near: its own starting weights, or the scripted expert's action (observation ``expert``)."""
 
 
 def anchor_loss(mean: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:

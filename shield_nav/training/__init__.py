@@ -16,71 +16,56 @@ A run lives in ``<log_root>/<experiment_name>/<YYYY-mm-dd_HH-MM-SS>_<name>/``:
 * ``exported/policy.pt`` (TorchScript) and ``exported/policy.onnx``: the deterministic actor with an explicit
   GRU state, ``(obs, depth, h_in) -> (actions, h_out)``.
 
-Modules: :mod:`~shield_nav.training.config` (the typed config, its checks, rsl-rl's dict) and
-:mod:`~shield_nav.training.runner` (runners, env, run folders, resume, signals, exports, the CLI) and
+Modules: :mod:`~shield_nav.training.config` (the typed config, its checks, rsl-rl's dict),
+:mod:`~shield_nav.training.checks` (the device, files and checkpoints checked before any work),
+:mod:`~shield_nav.training.cli` (``train.py``'s parser and ``main``),
+:mod:`~shield_nav.training.runner` (runners, env, run folders, resume, signals, exports) and
 :mod:`~shield_nav.training.pipeline` (staged recipes: several runs in sequence from one config, resumable). Everything
-public is re-exported here.
+public is re-exported here, lazily (PEP 562): importing this package costs only what the names used cost, so the
+CLI answers ``--help`` or a bad config without importing torch and rsl-rl (docs/training.md).
 """
 
-from shield_nav.training.config import (
-    ALGORITHM_CONFIGS,
-    ANCHORED_ALGORITHM,
-    CHECKPOINT_FORMAT_VERSION,
-    MULTI_HYPOTHESIS_ALGORITHM,
-    REPO_ROOT,
-    SCHEDULED_ALGORITHM,
-    ActorConfig,
-    AlgorithmConfig,
-    AnchoredPPOConfig,
-    CriticConfig,
-    DistillationConfig,
-    DistributionConfig,
-    ExpertConfig,
-    MultiHypothesisDistillationConfig,
-    PPOConfig,
-    RunnerConfig,
-    ScheduledDistillationConfig,
-    TrainConfig,
-    load_train_config,
-    migrate_flat_algorithm,
-    rsl_rl_train_cfg,
-)
-from shield_nav.training.runner import (
-    ShieldNavDistillationRunner,
-    ShieldNavRunner,
-    build_parser,
-    check_checkpoint,
-    check_device,
-    check_files,
-    config_from_args,
-    configure_threads,
-    episode_means,
-    main,
-    make_env,
-    make_runner,
-    progress_line,
-    read_checkpoint_infos,
-    train,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_EXPORTS = {
+    "config": (
+        "ALGORITHM_CONFIGS", "ANCHORED_ALGORITHM", "ANCHOR_TARGETS", "CHECKPOINT_FORMAT_VERSION",
+        "MULTI_HYPOTHESIS_ALGORITHM", "REPO_ROOT", "SCHEDULED_ALGORITHM", "ActorConfig", "AlgorithmConfig",
+        "AnchoredPPOConfig", "CriticConfig", "DistillationConfig", "DistributionConfig", "ExpertConfig",
+        "MultiHypothesisDistillationConfig", "PPOConfig", "RunnerConfig", "ScheduledDistillationConfig", "TrainConfig",
+        "load_train_config", "migrate_flat_algorithm", "rsl_rl_train_cfg",
+    ),
+    "checks": ("check_checkpoint", "check_device", "check_files", "read_checkpoint_infos"),
+    "cli": ("build_parser", "config_from_args", "main", "overrides_from_args"),
+    "runner": (
+        "ShieldNavDistillationRunner", "ShieldNavRunner", "configure_threads", "episode_means", "make_env",
+        "make_runner", "progress_line", "train",
+    ),
+}  # fmt: skip
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 
 __all__ = [
     "ALGORITHM_CONFIGS",
     "ANCHORED_ALGORITHM",
+    "ANCHOR_TARGETS",
     "ActorConfig",
     "AlgorithmConfig",
     "AnchoredPPOConfig",
-    "DistillationConfig",
-    "MultiHypothesisDistillationConfig",
-    "PPOConfig",
-    "ScheduledDistillationConfig",
     "CHECKPOINT_FORMAT_VERSION",
     "CriticConfig",
+    "DistillationConfig",
     "DistributionConfig",
     "ExpertConfig",
     "MULTI_HYPOTHESIS_ALGORITHM",
+    "MultiHypothesisDistillationConfig",
+    "PPOConfig",
     "REPO_ROOT",
     "RunnerConfig",
     "SCHEDULED_ALGORITHM",
+    "ScheduledDistillationConfig",
     "ShieldNavDistillationRunner",
     "ShieldNavRunner",
     "TrainConfig",
@@ -92,12 +77,66 @@ __all__ = [
     "configure_threads",
     "episode_means",
     "load_train_config",
-    "migrate_flat_algorithm",
     "main",
     "make_env",
     "make_runner",
+    "migrate_flat_algorithm",
+    "overrides_from_args",
     "progress_line",
     "read_checkpoint_infos",
     "rsl_rl_train_cfg",
     "train",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Import the submodule that defines ``name`` on first use (PEP 562)."""
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # static analysers and IDEs see the names eagerly
+    from shield_nav.training.checks import check_checkpoint, check_device, check_files, read_checkpoint_infos
+    from shield_nav.training.cli import build_parser, config_from_args, main, overrides_from_args
+    from shield_nav.training.config import (
+        ALGORITHM_CONFIGS,
+        ANCHOR_TARGETS,
+        ANCHORED_ALGORITHM,
+        CHECKPOINT_FORMAT_VERSION,
+        MULTI_HYPOTHESIS_ALGORITHM,
+        REPO_ROOT,
+        SCHEDULED_ALGORITHM,
+        ActorConfig,
+        AlgorithmConfig,
+        AnchoredPPOConfig,
+        CriticConfig,
+        DistillationConfig,
+        DistributionConfig,
+        ExpertConfig,
+        MultiHypothesisDistillationConfig,
+        PPOConfig,
+        RunnerConfig,
+        ScheduledDistillationConfig,
+        TrainConfig,
+        load_train_config,
+        migrate_flat_algorithm,
+        rsl_rl_train_cfg,
+    )
+    from shield_nav.training.runner import (
+        ShieldNavDistillationRunner,
+        ShieldNavRunner,
+        configure_threads,
+        episode_means,
+        make_env,
+        make_runner,
+        progress_line,
+        train,
+    )

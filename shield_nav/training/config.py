@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 
 from envs.config import ConfigError, load_config, require, select_raw, to_dict
 from envs.navigation import NavConfig
-from shield_nav.anchored import ANCHOR_TARGETS
 from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
 from shield_nav.shield import ShieldConfig
 
@@ -208,6 +207,9 @@ SCHEDULED_ALGORITHM = "shield_nav.distillation:ScheduledDistillation"
 """``runner.algorithm.class_name`` of a single-head student with a learning-rate schedule."""
 ANCHORED_ALGORITHM = "shield_nav.anchored:AnchoredPPO"
 """``runner.algorithm.class_name`` of PPO fine-tuning anchored to its ``runner.actor_init`` actor."""
+ANCHOR_TARGETS = ("actor_init", "expert")
+"""What the actor is held near: its own starting weights, or the scripted expert's action (observation ``expert``).
+Defined here, not in :mod:`shield_nav.anchored`, so that checking a config does not import torch."""
 ALGORITHM_CONFIGS: dict[str, type[AlgorithmConfig]] = {
     "PPO": PPOConfig,
     ANCHORED_ALGORITHM: AnchoredPPOConfig,

@@ -166,7 +166,7 @@ def check_inputs(names: Sequence[str], configs: Sequence[TrainConfig], produced:
 
     A stage's input file (``runner.actor_init``, ...) must exist or be produced by an earlier stage of the pipeline.
     """
-    from shield_nav.training.runner import check_device
+    from shield_nav.training.checks import check_device
 
     for name, cfg in zip(names, configs, strict=True):
         check_device(cfg.device)
@@ -292,7 +292,7 @@ def run(
         final = final_checkpoint(run_dir, cfg)
         if not os.path.isfile(final):
             raise RuntimeError(f"pipeline stage '{name}' ended without its final checkpoint {final!r}")
-        from shield_nav.training.runner import read_checkpoint_infos
+        from shield_nav.training.checks import read_checkpoint_infos
 
         infos = read_checkpoint_infos(final)
         record = {

@@ -1,8 +1,10 @@
-"""A training run: runners with versioned checkpoints, the env, run folders, resume, signals, exports, the CLI."""
+"""A training run: runners with versioned checkpoints, the env, run folders, resume, signals, exports.
+
+The command line is :mod:`~shield_nav.training.cli`; the checks run before training, :mod:`~shield_nav.training.checks`.
+"""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import datetime
@@ -12,7 +14,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -21,12 +23,11 @@ from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, to_dict, to_yaml
 from shield_nav.baselines import EXPERTS
+from shield_nav.training.checks import check_files
 from shield_nav.training.config import (
     CHECKPOINT_FORMAT_VERSION,
     REPO_ROOT,
     TrainConfig,
-    load_train_config,
-    migrate_flat_algorithm,
     rsl_rl_train_cfg,
 )
 
@@ -67,22 +68,6 @@ def make_runner(env: VecEnv, cfg: TrainConfig, log_dir: str | None, device: str)
     """The runner of ``cfg.runner.class_name`` over ``env``."""
     cls = ShieldNavDistillationRunner if cfg.runner.class_name == "DistillationRunner" else ShieldNavRunner
     return cls(env, rsl_rl_train_cfg(cfg), log_dir=log_dir, device=device, config=cfg)
-
-
-def read_checkpoint_infos(path: str | os.PathLike) -> dict:
-    """The ``infos`` of a checkpoint, migrated to the current format (``ValueError`` if unknown or unreadable)."""
-    ckpt = check_checkpoint(path, "checkpoint")
-    infos = ckpt.get("infos") or {}
-    version = infos.get("format_version")
-    if version is None:
-        raise ValueError(f"{path}: no format_version in infos; not written by shield_nav.training")
-    if version > CHECKPOINT_FORMAT_VERSION:
-        raise ValueError(f"{path}: format_version {version} is newer than this code ({CHECKPOINT_FORMAT_VERSION})")
-    if version == 1 and isinstance(infos.get("config"), dict):
-        # Version 2 types runner.algorithm by its class (training.config.ALGORITHM_CONFIGS); version 1 stored the
-        # flat section with every algorithm's keys.
-        infos = {**infos, "config": migrate_flat_algorithm(infos["config"], str(path)), "format_version": 2}
-    return infos
 
 
 class _StopTraining(Exception):
@@ -175,54 +160,6 @@ def _new_run_dir(cfg: TrainConfig) -> str:
     path = new_stamped_dir(cfg, cfg.name)
     os.makedirs(os.path.join(path, "params"), exist_ok=True)
     return path
-
-
-def check_device(device: str) -> None:
-    """Fail before any folder is made if ``device`` names CUDA that this torch build or machine does not have."""
-    if not device.startswith("cuda"):
-        return
-    if not torch.cuda.is_available():
-        build = "a CPU-only build" if torch.version.cuda is None else f"a CUDA {torch.version.cuda} build"
-        raise ConfigError(f"config key 'device': {device!r} asked, but no CUDA device is usable here (torch "
-                          f"{torch.__version__} is {build}); use --device cpu")  # fmt: skip
-    index = int(device.split(":", 1)[1]) if ":" in device else 0
-    if index >= torch.cuda.device_count():
-        raise ConfigError(f"config key 'device': {device!r} asked, but only {torch.cuda.device_count()} CUDA "
-                          "device(s) are visible")  # fmt: skip
-
-
-def check_checkpoint(path: str | os.PathLike, what: str) -> dict:
-    """Load a checkpoint on the CPU, or fail with a message that names it and the flag/key it came from."""
-    if not os.path.isfile(path):
-        raise ConfigError(f"{what}: no such file {str(path)!r}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # any reader error means the same thing to the user: unreadable
-        size = os.path.getsize(path)
-        raise ConfigError(f"{what}: {str(path)!r} ({size} bytes) is not a readable torch checkpoint, e.g. truncated "
-                          f"by an interrupted copy or save ({type(err).__name__}: {err})") from None  # fmt: skip
-    if not isinstance(ckpt, dict):
-        raise ConfigError(f"{what}: {str(path)!r} holds a {type(ckpt).__name__}, not a checkpoint dict")
-    return ckpt
-
-
-def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> None:
-    """Fail before any work if a file the run needs is missing or unreadable, or the device is not there."""
-    check_device(cfg.device)
-    if resume is not None:
-        ckpt = check_checkpoint(resume, "--resume")
-        if "iter" not in ckpt:
-            raise ConfigError(f"--resume: {str(resume)!r} has no iteration count: not a model_<it>.pt of a run")
-    distill = cfg.runner.class_name == "DistillationRunner"
-    if distill and resume is None and not cfg.runner.expert.kind and not os.path.isfile(cfg.runner.teacher_checkpoint):
-        raise ConfigError(
-            f"config key 'runner.teacher_checkpoint': no such file {cfg.runner.teacher_checkpoint!r} "
-            "(train the teacher first: python train.py --config configs/train/teacher_<formulation>.yaml)"
-        )
-    if distill and resume is None and cfg.runner.student_init and not os.path.isfile(cfg.runner.student_init):
-        raise ConfigError(f"config key 'runner.student_init': no such file {cfg.runner.student_init!r}")
-    if resume is None and cfg.runner.actor_init and not os.path.isfile(cfg.runner.actor_init):
-        raise ConfigError(f"config key 'runner.actor_init': no such file {cfg.runner.actor_init!r}")
 
 
 def _init_student(runner: Any, path: str, device: str) -> dict:
@@ -451,100 +388,3 @@ def train(
     if interrupted:
         raise SystemExit(128 + int(stop.signum or signal.SIGINT))
     return run_dir
-
-
-# ------------------------------------------------------------------------------------------------ CLI
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The ``train.py`` argument parser."""
-    p = argparse.ArgumentParser(prog="train.py", description="Train the depth CNN+GRU policy with rsl-rl PPO.")
-    p.add_argument("--config", help="configs/train/<name>.yaml (required unless --resume)")
-    p.add_argument("--set", nargs="+", action="extend", default=[], metavar="A.B=V",
-                   help="dotted overrides, e.g. env.num_envs=32 (repeatable; all apply, in order)")  # fmt: skip
-    p.add_argument("--num-envs", type=int, help="shorthand for --set env.num_envs=N")
-    p.add_argument("--max-iterations", type=int, help="total iterations of the run")
-    p.add_argument("--seed", type=int, help="sets seed and env.seed")
-    p.add_argument("--device", help="cpu | cuda | cuda:i")
-    p.add_argument("--log-dir", help="root of the run folders (default: logs)")
-    p.add_argument(
-        "--resume",
-        help="model_<it>.pt to continue (its run folder and stored config are reused), or a "
-        "pipeline folder (its finished stages are skipped)",
-    )
-    return p
-
-
-def overrides_from_args(args: argparse.Namespace) -> list[str]:
-    """``--set`` plus the shorthand flags, as dotted overrides in the order they apply."""
-    overrides = list(args.set)
-    if args.num_envs is not None:
-        overrides.append(f"env.num_envs={args.num_envs}")
-    if args.max_iterations is not None:
-        overrides.append(f"max_iterations={args.max_iterations}")
-    if args.seed is not None:
-        overrides += [f"seed={args.seed}", f"env.seed={args.seed}"]
-    if args.device is not None:
-        overrides.append(f"device={args.device}")
-    if args.log_dir is not None:
-        overrides.append(f"log_root={args.log_dir}")
-    return overrides
-
-
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
-    overrides = overrides_from_args(args)
-    if args.resume is not None:
-        check_checkpoint(args.resume, "--resume")
-        if args.config is not None:
-            print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
-        stored = read_checkpoint_infos(args.resume)["config"]
-        # The stored config is what ran; keys given now must exist in its algorithm's section.
-        return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
-    if args.config is None:
-        raise ConfigError("--config is required (or --resume)")
-    cfg = load_train_config(files=args.config, overrides=overrides)
-    if getattr(cfg.runner.algorithm, "lr_schedule_iterations", None) == 0:
-        # Frozen into the stored config, so a resume that extends --max-iterations keeps the schedule it started.
-        cfg.runner.algorithm.lr_schedule_iterations = cfg.max_iterations
-    return cfg
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python train.py ...``: parse, resolve the config (failing fast on bad keys), train."""
-    from shield_nav.training import pipeline
-
-    args = build_parser().parse_args(argv)
-    staged = (args.resume is not None and os.path.isdir(args.resume)) or (
-        args.resume is None and args.config is not None and pipeline.is_pipeline_file(args.config)
-    )
-    if staged:  # a staged recipe: its stages run in sequence (shield_nav/training/pipeline.py)
-        try:
-            if args.max_iterations is not None:
-                raise ConfigError(
-                    "--max-iterations: a pipeline's stages set their own; use "
-                    "--set max_iterations=N to change every stage, or edit the stage's 'set'"
-                )
-            overrides = overrides_from_args(args)
-            if args.resume is not None:
-                root = args.resume
-                if args.config is not None:
-                    print(f"[pipeline] --resume: using the folder's stored configs; ignoring --config {args.config}",
-                          flush=True)  # fmt: skip
-                pipeline.load_stored(root, overrides)  # fail on a bad override before any work
-            else:
-                root = pipeline.start(pipeline.load_pipeline(args.config), overrides)
-        except (ConfigError, ValueError) as err:
-            print(f"train.py: error: {err}", file=sys.stderr)
-            return 2
-        print(f"[pipeline] folder: {root}", flush=True)
-        pipeline.run(root, overrides)
-        return 0
-    try:
-        cfg = config_from_args(args)
-        check_files(cfg, args.resume)
-    except (ConfigError, ValueError) as err:
-        print(f"train.py: error: {err}", file=sys.stderr)
-        return 2
-    train(cfg, resume=args.resume)
-    return 0

@@ -96,6 +96,35 @@ def test_bad_config_key_fails_fast_with_the_key_path(tmp_path):
     assert res.returncode == 2 and "runner.algorithm.num_mini_batches" in res.stderr
 
 
+def test_the_cli_checks_a_config_without_importing_torch(tmp_path):
+    """--help, a bad key and a good config's checks run on the light path (shield_nav.training.cli): torch, rsl-rl
+    and tensordict (~5 s of imports) are loaded only to train. Checked in a fresh interpreter, which records what
+    the CLI imported before it returned."""
+    probe = (
+        "import sys\n"
+        "from shield_nav.training.cli import build_parser, config_from_args\n"
+        "from shield_nav.training.checks import check_files\n"
+        "from shield_nav import training\n"
+        "assert training.load_train_config is not None and 'train' in dir(training)\n"
+        "cfg = config_from_args(build_parser().parse_args(sys.argv[1:]))\n"
+        "check_files(cfg)\n"
+        "print(sorted(m for m in ('torch', 'rsl_rl', 'tensordict') if m in sys.modules))\n"
+    )
+    res = subprocess.run([sys.executable, "-c", probe, "--config", "configs/train/recipe_full.yaml"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
+    # The lazy names resolve to the objects of the modules that define them.
+    from shield_nav import training
+    from shield_nav.training import checks, cli, config, runner
+
+    modules = {"checks": checks, "cli": cli, "config": config, "runner": runner}
+    for name in training.__all__:
+        assert getattr(training, name) is getattr(modules[training._WHERE[name]], name), name
+    with pytest.raises(AttributeError, match="no_such_name"):
+        training.no_such_name  # noqa: B018
+
+
 @pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
 def test_sigterm_saves_a_checkpoint_and_exports(tmp_path):
     root = str(tmp_path / "logs")

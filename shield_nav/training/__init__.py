@@ -28,7 +28,7 @@ CLI answers ``--help`` or a bad config without importing torch and rsl-rl (docs/
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 _EXPORTS = {
     "config": (
@@ -47,46 +47,7 @@ _EXPORTS = {
 }  # fmt: skip
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 
-__all__ = [
-    "ALGORITHM_CONFIGS",
-    "ANCHORED_ALGORITHM",
-    "ANCHOR_TARGETS",
-    "ActorConfig",
-    "AlgorithmConfig",
-    "AnchoredPPOConfig",
-    "CHECKPOINT_FORMAT_VERSION",
-    "CriticConfig",
-    "DistillationConfig",
-    "DistributionConfig",
-    "ExpertConfig",
-    "MULTI_HYPOTHESIS_ALGORITHM",
-    "MultiHypothesisDistillationConfig",
-    "PPOConfig",
-    "REPO_ROOT",
-    "RunnerConfig",
-    "SCHEDULED_ALGORITHM",
-    "ScheduledDistillationConfig",
-    "ShieldNavDistillationRunner",
-    "ShieldNavRunner",
-    "TrainConfig",
-    "build_parser",
-    "check_checkpoint",
-    "check_device",
-    "check_files",
-    "config_from_args",
-    "configure_threads",
-    "episode_means",
-    "load_train_config",
-    "main",
-    "make_env",
-    "make_runner",
-    "migrate_flat_algorithm",
-    "overrides_from_args",
-    "progress_line",
-    "read_checkpoint_infos",
-    "rsl_rl_train_cfg",
-    "train",
-]
+__all__ = sorted(_WHERE)
 
 
 def __getattr__(name: str) -> Any:
@@ -101,42 +62,3 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
-
-
-if TYPE_CHECKING:  # static analysers and IDEs see the names eagerly
-    from shield_nav.training.checks import check_checkpoint, check_device, check_files, read_checkpoint_infos
-    from shield_nav.training.cli import build_parser, config_from_args, main, overrides_from_args
-    from shield_nav.training.config import (
-        ALGORITHM_CONFIGS,
-        ANCHOR_TARGETS,
-        ANCHORED_ALGORITHM,
-        CHECKPOINT_FORMAT_VERSION,
-        MULTI_HYPOTHESIS_ALGORITHM,
-        REPO_ROOT,
-        SCHEDULED_ALGORITHM,
-        ActorConfig,
-        AlgorithmConfig,
-        AnchoredPPOConfig,
-        CriticConfig,
-        DistillationConfig,
-        DistributionConfig,
-        ExpertConfig,
-        MultiHypothesisDistillationConfig,
-        PPOConfig,
-        RunnerConfig,
-        ScheduledDistillationConfig,
-        TrainConfig,
-        load_train_config,
-        migrate_flat_algorithm,
-        rsl_rl_train_cfg,
-    )
-    from shield_nav.training.runner import (
-        ShieldNavDistillationRunner,
-        ShieldNavRunner,
-        configure_threads,
-        episode_means,
-        make_env,
-        make_runner,
-        progress_line,
-        train,
-    )

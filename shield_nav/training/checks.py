@@ -1,7 +1,7 @@
 """Checks run before any training work: the device, the checkpoints and files a run needs, a checkpoint's infos.
 
 Kept free of module-level torch and rsl-rl imports, so that ``train.py`` rejects a bad config, file or device in
-about a second instead of after the ~5 s those imports take; torch is imported only when a checkpoint is read or a
+about 2 s instead of after the ~5 s those imports take; torch is imported only when a checkpoint is read or a
 CUDA device asked.
 """
 
@@ -67,9 +67,12 @@ def check_files(cfg: TrainConfig, resume: str | os.PathLike | None = None) -> No
         raise ConfigError(f"config key 'runner.actor_init': no such file {cfg.runner.actor_init!r}")
 
 
-def read_checkpoint_infos(path: str | os.PathLike) -> dict:
-    """The ``infos`` of a checkpoint, migrated to the current format (``ValueError`` if unknown or unreadable)."""
-    ckpt = check_checkpoint(path, "checkpoint")
+def read_checkpoint_infos(path: str | os.PathLike, what: str = "checkpoint") -> dict:
+    """The ``infos`` of a checkpoint, migrated to the current format (``ValueError`` if unknown or unreadable).
+
+    A missing or unreadable file fails as in :func:`check_checkpoint`, naming ``what`` (the flag or key of the path).
+    """
+    ckpt = check_checkpoint(path, what)
     infos = ckpt.get("infos") or {}
     version = infos.get("format_version")
     if version is None:

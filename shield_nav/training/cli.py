@@ -2,7 +2,7 @@
 
 Everything up to the first training step's imports is light: the parser, the typed config and the pre-flight checks
 (:mod:`~shield_nav.training.checks`) run without importing torch or rsl-rl, so ``--help`` and a bad key, file or
-device answer in about a second. The runner (:mod:`~shield_nav.training.runner`) is imported only to train.
+device answer in about 2 s. The runner (:mod:`~shield_nav.training.runner`) is imported only to train.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 
 from envs.config import ConfigError
-from shield_nav.training.checks import check_checkpoint, check_files, read_checkpoint_infos
+from shield_nav.training.checks import check_files, read_checkpoint_infos
 from shield_nav.training.config import TrainConfig, load_train_config
 
 __all__ = ["build_parser", "config_from_args", "main", "overrides_from_args"]
@@ -58,10 +58,9 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
     overrides = overrides_from_args(args)
     if args.resume is not None:
-        check_checkpoint(args.resume, "--resume")
+        stored = read_checkpoint_infos(args.resume, "--resume")["config"]
         if args.config is not None:
             print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
-        stored = read_checkpoint_infos(args.resume)["config"]
         # The stored config is what ran; keys given now must exist in its algorithm's section.
         return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
     if args.config is None:

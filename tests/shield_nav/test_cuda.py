@@ -5,24 +5,16 @@ same computation on the CPU (the env's tensors) or the CPU copy of the trained w
 """
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
+from test_train_cli import REPO, run_train  # pytest prepends this folder to sys.path
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SMALL = ["--num-envs", "4", "--set", "runner.num_steps_per_env=8", "env.scenes.indices=[0,1]", "num_threads=0"]
-
-
-def run_train(args, timeout=300):
-    return subprocess.run(
-        [sys.executable, "train.py", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
-    )
 
 
 def only_run_dir(root):

@@ -12,7 +12,6 @@ import yaml
 from envs.config import ConfigError, load_config, require
 from envs.scenes import FAMILIES
 from shield_nav.baselines import BaselineConfig, make_baseline
-from shield_nav.route_map import RouteMapConfig
 from shield_nav.shield import ShieldConfig
 
 EVAL_FORMAT_VERSION = 1
@@ -44,10 +43,6 @@ class RowConfig:
     shield_overrides: dict[str, Any] = field(default_factory=dict)
     """This row's shield settings over the run's ``shield`` section (keys of ``ShieldConfig``), e.g. the paper's
     formulation beside the default shield in one table (``full_paper_shield`` in configs/eval/rows.yaml)."""
-    route_map: bool = False
-    """Aim the policy's goal input along a route planned on an occupancy map built from its own depth images
-    (:mod:`shield_nav.route_map`, the config's ``route_map`` section; ``controller: policy`` only). Beyond the
-    paper."""
 
 
 def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> ShieldConfig:
@@ -143,8 +138,6 @@ class EvalConfig:
     """HOCBF shield of rows with ``shield: true``."""
     baselines: BaselineConfig = field(default_factory=BaselineConfig)
     """Baseline controller parameters."""
-    route_map: RouteMapConfig = field(default_factory=RouteMapConfig)
-    """Onboard map and route of rows with ``route_map: true``."""
     plots: bool = True
     """Write figures."""
     trajectory_scenes: int = 2
@@ -215,8 +208,6 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
             raise EvalError(f"configuration {name!r} is a {row.controller} row but names no checkpoint ('policy:')")
         if row.controller not in POLICY_CONTROLLERS:
             make_baseline(row.controller, cfg.baselines)  # raises on an unknown controller name
-        if row.route_map and row.controller != "policy":
-            raise EvalError(f"configuration {name!r} has route_map: true, which needs controller: policy")
         if row.shield_overrides and not row.shield:
             raise EvalError(f"configuration {name!r} has shield_overrides but no shield ('shield: true')")
         row_shield_config(cfg.shield, row, name)  # raises on a bad key or value

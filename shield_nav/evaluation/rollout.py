@@ -18,7 +18,6 @@ from shield_nav.baselines import Controller, make_baseline
 from shield_nav.evaluation.config import EVAL_FORMAT_VERSION, EvalConfig, EvalError, RowConfig, row_shield_config
 from shield_nav.evaluation.metrics import aggregate, trajectory_metrics
 from shield_nav.evaluation.policies import LoadedPolicy, LoadedTeacher, PolicyInfo, load_policy, load_teacher
-from shield_nav.route_map import OnboardRoute
 from shield_nav.shield import STATUS_FALLBACK, STATUS_RELAXED, HOCBFShield
 
 
@@ -166,10 +165,6 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
     shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
-    route = None
-    if row.route_map:
-        route = OnboardRoute(cfg.route_map, env.cfg.camera)
-        route.reset(env)
     ids = np.zeros(n, dtype=np.int64)
     pos0 = env.local_pos.copy()
     phi_start = env.field_stack.geodesic(ids, pos0)
@@ -189,8 +184,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         live = end_step < 0
         if policy is not None or teacher is not None:
             if policy is not None:
-                state = obs["state"] if route is None else route.steer(env, obs["state"])
-                act, h = policy.step(state, obs["depth"], h)
+                act, h = policy.step(obs["state"], obs["depth"], h)
             else:
                 act = teacher.step(priv["teacher"])  # type: ignore[union-attr]
             cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None else None
@@ -213,8 +207,6 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             sh["total_us_sum"][li] += out.total_us
         obs, _, term, trunc, info = env.step(act, commands=cmd)
         priv = info
-        if route is not None:
-            route.observe(env)
         t += 1
         if on_step is not None:
             on_step(env, t, step_active)

@@ -170,11 +170,6 @@ class ShieldConfig:
     r_safe ball (the union of the braking barrier and the cone barrier h_c = r.v + |v| sqrt(|r|^2 - r_safe^2),
     each point with the one that gives it more room; same gain). The braking barrier alone brakes for points
     beside the path, which straight flight would pass (docs/shield.md, "It brakes for points beside the path")."""
-    passing_radius: float = 0.0
-    """With ``passing``: the radius [m] of the ball whose collision cone the velocity must point outside for a point
-    to pass under the cone barrier, h_c = r.v + |v| sqrt(|r|^2 - R^2). 0 (default): R = ``r_safe``. A larger R
-    keeps the braking row for every point closer than R to the straight-line path and lets only points further
-    aside pass; it must be >= ``r_safe`` so that either barrier keeps the point r_safe away."""
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
@@ -210,13 +205,6 @@ class ShieldConfig:
         require(not self.passing or self.barrier == "braking", f"{prefix}passing",
                 f"needs barrier 'braking' (it is the braking barrier's union with the collision cone), got barrier "
                 f"{self.barrier!r}")  # fmt: skip
-        require(
-            math.isfinite(self.passing_radius) and (self.passing_radius == 0 or self.passing_radius >= self.r_safe),
-            f"{prefix}passing_radius",
-            f"must be 0 (r_safe) or finite and >= r_safe ({self.r_safe}), got {self.passing_radius}",
-        )
-        require(self.passing_radius == 0 or self.passing, f"{prefix}passing_radius",
-                f"only acts with passing: true, got {self.passing_radius} with passing false")  # fmt: skip
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
                 f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
@@ -296,7 +284,7 @@ class HOCBFShield:
         self._rows_n = np.zeros(1, dtype=np.int64)  # how many (-1: none kept, the distance barrier)
         self._a_buf = np.zeros(3)
         self._brake_params = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain,
-                                       1.0 if cfg.passing else 0.0, cfg.passing_radius or cfg.r_safe])  # fmt: skip
+                                       1.0 if cfg.passing else 0.0])  # fmt: skip
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),

@@ -118,14 +118,12 @@ def braking_rows(
 
 
 def passing_rows(
-    r: np.ndarray, v: np.ndarray, a: np.ndarray, r_safe: float, brake_accel: float, gain: float,
-    passing_radius: float = 0.0,
+    r: np.ndarray, v: np.ndarray, a: np.ndarray, r_safe: float, brake_accel: float, gain: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The braking barrier's rows with its collision-cone union (``passing: true``; docs/shield.md).
 
-    The collision-cone barrier h_c = r.v + |v| S, S = sqrt(|r|^2 - R^2), is >= 0 when v points outside the
-    cone the ball of radius R subtends (R = ``passing_radius``, or r_safe where 0), so that flying straight on
-    passes the point at least R away; its
+    The collision-cone barrier h_c = r.v + |v| S, S = sqrt(|r|^2 - r_safe^2), is >= 0 when v points outside the
+    cone the r_safe ball subtends, so that flying straight on passes the point at least r_safe away; its
     first-order row is (r + S v / |v|).a >= -gain h_c - |v|^2 - |v| (r.v) / S, which a = 0 meets whenever h_c >= 0.
     The safe set is the union of {h_b >= 0} (``braking_rows``) and {h_c >= 0}; a point gets the cone row where
     h_c >= 0 and either h_b < 0 or the cone row is nearer to being met at the acceleration ``a`` (row value over
@@ -138,8 +136,7 @@ def passing_rows(
     a_mat, b = braking_rows(r, v, r_safe, brake_accel, gain)
     d = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
     speed = float(np.linalg.norm(v))
-    radius = passing_radius if passing_radius > 0 else r_safe
-    s2 = d * d - radius * radius
+    s2 = d * d - r_safe * r_safe
     ok = (s2 > PASSING_MIN_S**2) & (speed > PASSING_MIN_SPEED)
     s = np.sqrt(np.where(ok, s2, 1.0))
     rv = r @ v
@@ -206,7 +203,7 @@ def _point_row(rx: float, ry: float, rz: float, d: float, vx: float, vy: float, 
     """A point's row 2 q.a >= b at offset r (``d`` = |r|) and velocity v (``speed`` = |v|) with the braking barrier.
 
     The braking row has q = r (``_brake_rhs_d``). With passing on (``k[20]``), the collision-cone barrier
-    h_c = r.v + |v| S, S = sqrt(d^2 - R^2) (R = ``k[23]``, ``passing_radius``), competes; its first-order row hdot_c >= -gain h_c is
+    h_c = r.v + |v| S, S = sqrt(d^2 - r_safe^2), competes; its first-order row hdot_c >= -gain h_c is
     (r + S v / |v|).a >= -gain h_c - |v|^2 - |v| (r.v) / S, i.e. q = (r + S v / |v|) / 2. The safe set is the
     union {h_b >= 0} or {h_c >= 0}: holding either barrier that is non-negative keeps the point r_safe away. The
     cone row is taken where h_c >= 0 and either h_b < 0 or the cone row is the nearer to being met at the
@@ -214,7 +211,7 @@ def _point_row(rx: float, ry: float, rz: float, d: float, vx: float, vy: float, 
     """
     b = _brake_rhs_d(rx, ry, rz, d, vx, vy, vz, k[16], k[17], k[18], k[19])
     if k[20] > 0.5 and speed > PASSING_MIN_SPEED:
-        s2 = d * d - k[23] * k[23]
+        s2 = d * d - k[16] * k[16]
         if s2 > PASSING_MIN_S * PASSING_MIN_S:
             rv = rx * vx + ry * vy + rz * vz
             s = math.sqrt(s2)
@@ -316,15 +313,15 @@ def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, 
 
     v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2, then the barrier: ``brake`` = (braking flag,
     brake_accel, gain, passing flag) with the flags > 0.5 for the braking barrier and for its collision-cone union
-    (``_point_row``), r_safe, the braking divisor's floor sqrt(2 brake_accel BRAKE_EPS), the passing flag, |v|,
-    |v_lag| and the cone's radius (``brake[4]``, ``passing_radius``).
+    (``_point_row``), r_safe, the braking divisor's floor sqrt(2 brake_accel BRAKE_EPS), the passing flag, |v| and
+    |v_lag|.
     """
     return (v[0], v[1], v[2], p_lag[0], p_lag[1], p_lag[2], a[0], a[1], a[2], v_lag[0], v_lag[1], v_lag[2],
             2.0 * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
             2.0 * (v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), r_safe * r_safe,
             brake[0], r_safe, brake[1], brake[2], math.sqrt(2.0 * brake[1] * BRAKE_EPS), brake[3],
             math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]),
-            math.sqrt(v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]), brake[4])  # fmt: skip
+            math.sqrt(v_lag[0] * v_lag[0] + v_lag[1] * v_lag[1] + v_lag[2] * v_lag[2]))  # fmt: skip
 
 
 @nb.njit(cache=True, nogil=True)

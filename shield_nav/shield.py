@@ -160,9 +160,10 @@ class ShieldConfig:
     ``alpha1``), whose head-on row allows about p d / 2 of closing speed at distance d whatever the vehicle can
     brake, so that at high speed it asks for more deceleration than the tilt limit gives. ``alpha0``/``alpha1``
     also set the altitude rows with either barrier."""
-    brake_accel: float = 8.0
+    brake_accel: float = 10.0
     """a_b [m/s^2] of the braking barrier: the deceleration it plans with, chosen on the validation scenes
-    (docs/shield.md, "Braking barrier"); the tilt limit gives at most g tan(50 deg) = 11.7 m/s^2 level."""
+    (docs/shield.md, "Braking barrier"; 8 until 2026-11-26); the tilt limit gives at most g tan(50 deg) =
+    11.7 m/s^2 level."""
     brake_gain: float = 4.0
     """Class-K gain [1/s] of the braking barrier's first-order condition hdot >= -gain h (chosen on validation)."""
     passing: bool = False

@@ -214,8 +214,9 @@ def test_scripted_flights_shield_prevents_collisions(kind):
     bare = fly(kind, speeds, shielded=False, duration=4.5)
     assert bare.collided.all()  # the naive controller crashes at every speed
     # Measured minimum 3-D distances over 4.5 s from the vehicle centre to the surface, pole / wall (braking barrier,
-    # a_b 8, lag 0.15 s), at 3 / 5 / 7 / 9 m/s: r_safe 0.5 m: 0.51 / 0.49 / 0.48 / 0.48 (both); the default r_safe
-    # 0.3 m: pole 0.30 / 0.28 / 0.25 / 0.24, wall 0.30 / 0.28 / 0.25 / 0.24. The controller keeps pushing, so the
+    # a_b 10, lag 0.15 s, 2026-11-26), at 3 / 5 / 7 / 9 m/s: r_safe 0.5 m: pole 0.51 / 0.50 / 0.50 / 0.50, wall
+    # 0.51 / 0.50 / 0.50 / 0.50; the default r_safe 0.3 m: pole 0.31 / 0.30 / 0.30 / 0.28, wall 0.31 / 0.30 / 0.30 /
+    # 0.28 (a_b 8: 0.31 / 0.30 / 0.30 / 0.30 for both). The controller keeps pushing, so the
     # distance creeps towards r_safe; assert r_safe minus 0.1 m (the point cloud's pixel sampling and what the
     # one-lag prediction leaves of the lag), and no contact (collision radius 0.2 m).
     for r_safe in (0.5, ShieldConfig().r_safe):
@@ -733,7 +734,8 @@ def test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on(offset):
     """A point mass cruising at 9 m/s (a_raw = 0, no lag) along a row of poles (points every 3 m, 0.5-2.5 m high)
     ``offset`` beside its path. Straight flight passes each pole ``offset`` away, outside r_safe = 0.3 m: with
     ``passing`` the shield leaves it alone (speed 9 m/s, closest approach = offset), while the braking barrier alone
-    brakes for every pole (measured: down to 6.9 / 5.7 m/s at offsets 1.0 / 0.6) and pushes the vehicle aside. Head-on
+    brakes for every pole (measured with the default a_b 10: down to 7.2 / 6.0 m/s at offsets 1.0 / 0.6; with a_b 8,
+    6.9 / 5.7) and pushes the vehicle aside. Head-on
     (offset 0) both stop outside r_safe."""
     xs, zs = np.arange(5.0, 45.0, 3.0), np.linspace(0.5, 2.5, 9)
     poles = np.array([[x, offset, z] for x in xs for z in zs])
@@ -755,7 +757,7 @@ def test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on(offset):
     if offset > 0:
         v_min, d_min, active = result[True]
         assert active == 0 and v_min == 9.0 and d_min == pytest.approx(offset, abs=1e-4)  # sampled every 4.5 cm
-        assert result[False][0] < 7.0 and result[False][2] > 0
+        assert result[False][0] < 7.5 and result[False][2] > 0
     else:
         for v_min, d_min, _ in result.values():
             assert v_min < 1e-3 and d_min >= 0.3 - 0.005

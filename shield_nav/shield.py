@@ -74,6 +74,7 @@ _NEG_E3 = -_E3
 _NO_ROWS, _NO_RHS = np.zeros((0, 3)), np.zeros(0)
 _PLANE_EPS = 1.0e-3  # [m/s^2] an altitude row's right-hand side stays this far inside the actuator range
 _ZERO3 = np.zeros(3)
+_EYE3 = np.eye(3)
 
 
 @dataclass
@@ -171,6 +172,15 @@ class ShieldConfig:
     r_safe ball (the union of the braking barrier and the cone barrier h_c = r.v + |v| sqrt(|r|^2 - r_safe^2),
     each point with the one that gives it more room; same gain). The braking barrier alone brakes for points
     beside the path, which straight flight would pass (docs/shield.md, "It brakes for points beside the path")."""
+    along_weight: float = 1.0
+    """Cost weight of the correction's component along the horizontal velocity (braking or speeding up) in the QP's
+    objective, 1/2 (a - a_raw)^T W (a - a_raw) with W = I + (along_weight - 1) u u^T + (vertical_weight - 1) e3 e3^T
+    (u: the horizontal velocity's direction, faded in below 1 m/s). 1 (default): the paper's minimum-norm
+    correction. Above 1 the shield prefers to satisfy a row by steering away from the point rather than braking;
+    every row holds either way, only which safe command is chosen changes (docs/shield.md, "Correction metric")."""
+    vertical_weight: float = 1.0
+    """Cost weight of the correction's vertical component in the QP's objective (see ``along_weight``). Above 1 the
+    shield prefers horizontal corrections to climbs and dives."""
     max_altitude: float = 0.0
     """If > 0, one more planar HOCBF row keeps z below this value [m] (a geofence ceiling): B = max_altitude - z
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
@@ -206,6 +216,9 @@ class ShieldConfig:
         require(not self.passing or self.barrier == "braking", f"{prefix}passing",
                 f"needs barrier 'braking' (it is the braking barrier's union with the collision cone), got barrier "
                 f"{self.barrier!r}")  # fmt: skip
+        for key in ("along_weight", "vertical_weight"):
+            val = getattr(self, key)
+            require(math.isfinite(val) and 0.01 <= val <= 1000, f"{prefix}{key}", f"must be in [0.01, 1000], got {val}")
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
                 f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
@@ -435,14 +448,16 @@ class HOCBFShield:
         g_mat = np.vstack((-a_mat, hard_g))
         h_vec = np.concatenate((-b_vec, hard_h))
         t0 = time.perf_counter()
-        x = self._qp(np.eye(3), -accel_raw, g_mat, h_vec)
+        w = self._metric(vel_w)
+        x = self._qp(w, -(w @ accel_raw), g_mat, h_vec)
         if x is not None and np.all(np.isfinite(x)):
             return x, STATUS_SOLVED, 0.0, 1e6 * (time.perf_counter() - t0)
         # Relaxed: variables [a, s]; obstacle rows A a + s >= b, s >= 0; altitude rows and actuator limits hard;
         # cost 1/2|a - a_raw|^2 + w/2 s^2.
         k = len(b_vec)
         p4 = np.diag([1.0, 1.0, 1.0, c.slack_weight])
-        q4 = np.concatenate((-accel_raw, [0.0]))
+        p4[:3, :3] = w
+        q4 = np.concatenate((-(w @ accel_raw), [0.0]))
         g4 = np.zeros((k + len(hard_h) + 1, 4))
         g4[:k, :3] = -a_mat
         g4[:k, 3] = -1.0
@@ -455,6 +470,18 @@ class HOCBFShield:
             return x[:3], STATUS_RELAXED, float(max(x[3], 0.0)), us
         # Fallback: brake along -v at the largest decelaration the tilt limit allows, hold altitude.
         return self._brake(vel_w), STATUS_FALLBACK, math.inf, us
+
+    def _metric(self, vel_w: np.ndarray) -> np.ndarray:
+        """The QP's cost matrix W (3, 3), positive definite: identity unless along/vertical weights are set."""
+        c = self.cfg
+        if c.along_weight == 1.0 and c.vertical_weight == 1.0:
+            return _EYE3
+        w = np.eye(3)
+        w[2, 2] = c.vertical_weight
+        vh = np.array([vel_w[0], vel_w[1], 0.0])
+        # u u^T scaled by min(|v_h|^2, 1) / |v_h|^2: the along-weight fades in over the first 1 m/s.
+        w += (c.along_weight - 1.0) * np.outer(vh, vh) / max(float(vh @ vh), 1.0)
+        return w
 
     def _qp(self, p: np.ndarray, q: np.ndarray, g: np.ndarray, h: np.ndarray) -> np.ndarray | None:
         if self._sparse:

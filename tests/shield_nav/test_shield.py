@@ -102,6 +102,32 @@ def test_single_active_constraint_is_the_closed_form_half_space_projection():
     np.testing.assert_allclose(a_star, expected, atol=1e-9)
 
 
+def test_correction_metric_steers_instead_of_braking_by_hand():
+    # One row A a >= b with A = 2 r, r = p - o = (-2, -1, 0) (the point 2 m ahead, 1 m to the left), b = 8, at
+    # a_raw = 0 and v = 9 m/s along x. Minimum-norm (W = I): a* = b A^T / |A|^2 = 8 (-4, -2, 0) / 20 = (-1.6, -0.8, 0).
+    # W = diag(4, 1, 1) (along_weight 4): a* = b W^-1 A^T / (A W^-1 A^T) = 8 (-1, -2, 0) / (4 + 4) = (-1, -2, 0):
+    # less braking, more steering away, and the row holds with equality either way.
+    a_mat, b_vec = np.array([[-4.0, -2.0, 0.0]]), np.array([8.0])
+    v = np.array([9.0, 0.0, 0.0])
+    plain, status, *_ = HOCBFShield().solve(np.zeros(3), a_mat, b_vec, v)
+    assert status == STATUS_SOLVED
+    np.testing.assert_allclose(plain, [-1.6, -0.8, 0.0], atol=1e-9)
+    steer, status, *_ = HOCBFShield(ShieldConfig(along_weight=4.0)).solve(np.zeros(3), a_mat, b_vec, v)
+    assert status == STATUS_SOLVED
+    np.testing.assert_allclose(steer, [-1.0, -2.0, 0.0], atol=1e-9)
+    # The weight follows the horizontal velocity: flying along y, the same row's braking axis is y. W = diag(1, 4, 1):
+    # W^-1 A^T = (-4, -0.5, 0), A W^-1 A^T = 17, a* = 8 / 17 (-4, -0.5, 0).
+    along_y, *_ = HOCBFShield(ShieldConfig(along_weight=4.0)).solve(np.zeros(3), a_mat, b_vec, np.array([0, 9.0, 0]))
+    np.testing.assert_allclose(along_y, np.array([-4.0, -0.5, 0.0]) * 8 / 17, atol=1e-9)
+    # vertical_weight: a point above-ahead, r = (-2, 0, -1), b = 8, at v = 0 (no along-weight), W = diag(1, 1, 4):
+    # W^-1 A^T = (-4, 0, -0.5), A W^-1 A^T = 17, a* = 8 / 17 (-4, 0, -0.5) (identity: 8 / 20 (-4, 0, -2)).
+    a_up = np.array([[-4.0, 0.0, -2.0]])
+    low, *_ = HOCBFShield(ShieldConfig(vertical_weight=4.0)).solve(np.zeros(3), a_up, b_vec, np.zeros(3))
+    np.testing.assert_allclose(low, np.array([-4.0, 0.0, -0.5]) * 8 / 17, atol=1e-9)
+    with pytest.raises(ValueError, match="along_weight"):
+        HOCBFShield(ShieldConfig(along_weight=0.0))
+
+
 def test_safe_command_is_returned_bit_exact():
     shield = HOCBFShield()
     cmd = np.array([[G / math.cos(0.2), 0.05, 0.2, 0.3]])

@@ -25,6 +25,8 @@ def _header_lines(prep: Prepared, summary: dict) -> list[str]:
         f"{cfg.title or cfg.name}: family `{cfg.scenes.family}` scenes {cfg.scene_indices}, "
         f"{cfg.trials_per_scene} trials per scene and speed ({n_sc * cfg.trials_per_scene} per cell), seed {cfg.seed}.",
         "Observation noise and domain randomization: " + ("ON (training ranges)." if cfg.randomization else "off."),
+        # The title is free text; the overrides as run (a CLI --set can change e.g. the scene seed a title names).
+        "Env overrides: " + (", ".join(f"`{o}`" for o in cfg.env_overrides) if cfg.env_overrides else "none") + ".",
         "SR: success rate % [95 % Wilson interval]; Vel: mean speed of successful trials [m/s].",
     ]
     if any(r.controller.startswith("oracle") for r in prep.rows.values()):

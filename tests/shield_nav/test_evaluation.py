@@ -265,6 +265,8 @@ def test_teacher_row_runs_the_privileged_mlp(tmp_path, tiny_teacher):
     assert unit.policy_env["local_map"]["enabled"] is True and unit.policy_env["render_depth"] is False
     summary = E.evaluate(cfg, str(tmp_path / "out"), progress=False)
     assert "privileged local ESDF map" in summary["markdown"]
+    # The header names the env overrides as run (the free-text title may name other values).
+    assert "Env overrides: `episode.timeout_factor=0.05`." in summary["markdown"]
     (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
     assert trial["outcome"] in ("success", "collision", "timeout", "out_of_bounds") and trial["steps"] > 0
 

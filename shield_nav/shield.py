@@ -453,7 +453,7 @@ class HOCBFShield:
         if x is not None and np.all(np.isfinite(x)):
             return x, STATUS_SOLVED, 0.0, 1e6 * (time.perf_counter() - t0)
         # Relaxed: variables [a, s]; obstacle rows A a + s >= b, s >= 0; altitude rows and actuator limits hard;
-        # cost 1/2|a - a_raw|^2 + w/2 s^2.
+        # cost 1/2 (a - a_raw)^T W (a - a_raw) + slack_weight/2 s^2 (W = I unless the correction metric is set).
         k = len(b_vec)
         p4 = np.diag([1.0, 1.0, 1.0, c.slack_weight])
         p4[:3, :3] = w

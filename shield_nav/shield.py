@@ -449,7 +449,8 @@ class HOCBFShield:
         h_vec = np.concatenate((-b_vec, hard_h))
         t0 = time.perf_counter()
         w = self._metric(vel_w)
-        x = self._qp(w, -(w @ accel_raw), g_mat, h_vec)
+        q = -accel_raw if w is _EYE3 else -(w @ accel_raw)  # the default skips the product
+        x = self._qp(w, q, g_mat, h_vec)
         if x is not None and np.all(np.isfinite(x)):
             return x, STATUS_SOLVED, 0.0, 1e6 * (time.perf_counter() - t0)
         # Relaxed: variables [a, s]; obstacle rows A a + s >= b, s >= 0; altitude rows and actuator limits hard;
@@ -457,7 +458,7 @@ class HOCBFShield:
         k = len(b_vec)
         p4 = np.diag([1.0, 1.0, 1.0, c.slack_weight])
         p4[:3, :3] = w
-        q4 = np.concatenate((-(w @ accel_raw), [0.0]))
+        q4 = np.concatenate((q, [0.0]))
         g4 = np.zeros((k + len(hard_h) + 1, 4))
         g4[:k, :3] = -a_mat
         g4[:k, 3] = -1.0

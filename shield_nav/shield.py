@@ -34,6 +34,8 @@ from shield_nav.shield_rows import (
     _rows_min_margin,
     _select,
     accel_from_command,
+    backup_distance,
+    backup_rows,
     braking_rows,
     ceiling_row,
     command_from_accel,
@@ -52,6 +54,8 @@ __all__ = [
     "ShieldConfig",
     "ShieldOutput",
     "accel_from_command",
+    "backup_distance",
+    "backup_rows",
     "braking_rows",
     "ceiling_row",
     "command_from_accel",
@@ -160,7 +164,10 @@ class ShieldConfig:
     docs/shield.md, "Braking barrier"). ``distance``: the paper's HOCBF on B = |r|^2 - r_safe^2 (gains ``alpha0``,
     ``alpha1``), whose head-on row allows about p d / 2 of closing speed at distance d whatever the vehicle can
     brake, so that at high speed it asks for more deceleration than the tilt limit gives. ``alpha0``/``alpha1``
-    also set the altitude rows with either barrier."""
+    also set the altitude rows with either barrier. ``backup``: h = D - r_safe with D the closest distance to the
+    point over one braking maneuver shared by every point, straight along -v at ``brake_accel`` to a stop
+    (``backup_rows``; gain ``brake_gain``): a point beside the path that this maneuver clears by r_safe does not slow
+    the vehicle, and every point's row holds at once under that maneuver (docs/shield.md, "Backup barrier")."""
     brake_accel: float = 10.0
     """a_b [m/s^2] of the braking barrier: the deceleration it plans with, chosen on the validation scenes
     (docs/shield.md, "Braking barrier"; 8 until 2026-11-26); the tilt limit gives at most g tan(50 deg) =
@@ -206,8 +213,8 @@ class ShieldConfig:
             f"{prefix}max_altitude",
             f"must be 0 (off) or finite and > min_altitude ({self.min_altitude}), got {self.max_altitude}",
         )
-        require(self.barrier in ("distance", "braking"), f"{prefix}barrier",
-                f"must be 'distance' or 'braking', got {self.barrier!r}")  # fmt: skip
+        require(self.barrier in ("distance", "braking", "backup"), f"{prefix}barrier",
+                f"must be 'distance', 'braking' or 'backup', got {self.barrier!r}")  # fmt: skip
         require(self.brake_accel > 0 and math.isfinite(self.brake_accel), f"{prefix}brake_accel",
                 f"must be > 0, got {self.brake_accel}")  # fmt: skip
         require(self.brake_gain > 0 and math.isfinite(self.brake_gain), f"{prefix}brake_gain",
@@ -297,8 +304,9 @@ class HOCBFShield:
         self._rows = np.zeros((0, 8))  # braking barrier: every considered point's rows from the last selection
         self._rows_n = np.zeros(1, dtype=np.int64)  # how many (-1: none kept, the distance barrier)
         self._a_buf = np.zeros(3)
-        self._brake_params = np.array([1.0 if cfg.barrier == "braking" else 0.0, cfg.brake_accel, cfg.brake_gain,
-                                       1.0 if cfg.passing else 0.0])  # fmt: skip
+        # (braking-type rows, a_b, gain, mode: 0 braking, 1 braking + collision cone, 2 backup; see _consts)
+        self._brake_params = np.array([0.0 if cfg.barrier == "distance" else 1.0, cfg.brake_accel, cfg.brake_gain,
+                                       2.0 if cfg.barrier == "backup" else (1.0 if cfg.passing else 0.0)])  # fmt: skip
         self._g = np.array([0.0, 0.0, cfg.gravity])
         # Actuator limits on T = a + g e3, written as G_act a <= h_act:
         #   tilt: n_k . T_xy <= tan(max_tilt) cos(pi / F) T_z  for F face normals n_k (inscribed polygon),
@@ -369,7 +377,7 @@ class HOCBFShield:
         p = np.asarray(pos_w, dtype=np.float64)
         v = np.asarray(vel_w, dtype=np.float64)
         p_lag, v_lag = (p, v) if lagged is None else (np.asarray(x, dtype=np.float64) for x in lagged)
-        if c.barrier == "braking" and len(self._rows) < len(pts):
+        if c.barrier != "distance" and len(self._rows) < len(pts):
             self._rows = np.empty((max(len(pts), 2 * len(self._rows)), 8))
         n = _select(
             pts, p, v, p_lag, v_lag, lagged is not None,

@@ -150,6 +150,73 @@ def passing_rows(
     return np.where(cone[:, None], a_cone, a_mat), np.where(cone, b_cone, b), cone
 
 
+def backup_distance(r: np.ndarray, v: np.ndarray, brake_accel: float) -> np.ndarray:
+    """D: each point's closest distance over the backup maneuver (braking straight along -v to a stop).
+
+    Offsets r (K, 3) = p - o; the maneuver brakes at ``brake_accel`` from p and stops S = |v|^2 / (2 brake_accel)
+    further on.
+
+    With u = v / |v|, x = (o - p).u (how far ahead the point lies) and m its distance from the line of v:
+    D = |r| for x <= 0, m for 0 < x < S, sqrt((x - S)^2 + m^2) for x >= S.
+    """
+    r = np.atleast_2d(np.asarray(r, dtype=np.float64))
+    v = np.asarray(v, dtype=np.float64)
+    speed = float(np.linalg.norm(v))
+    u = v / speed
+    x = -(r @ u)
+    m = np.linalg.norm(r + x[:, None] * u[None, :], axis=1)
+    stop = speed * speed / (2.0 * brake_accel)
+    d = np.linalg.norm(r, axis=1)
+    return np.where(x <= 0.0, d, np.where(x < stop, m, np.hypot(np.maximum(x - stop, 0.0), m)))
+
+
+def backup_rows(
+    r: np.ndarray, v: np.ndarray, r_safe: float, brake_accel: float, gain: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Backup-barrier rows A a >= b for offsets r (K, 3) = p - o and velocity v (3,) (``barrier: backup``).
+
+    docs/shield.md, "Backup barrier".
+
+    The barrier h = D - r_safe, D the closest distance to the point over one backup maneuver shared by every
+    point, braking straight along -v at a_b = ``brake_accel`` to a stop (``backup_distance``). Under that maneuver
+    no D decreases, so the rows of all points hold together at a = -a_b v / |v| wherever every h >= 0: their
+    intersection stays feasible, which per-point unions (``passing``) did not give. Its first-order row
+    Ddot >= -gain h, with x, m, S and u of ``backup_distance`` and r_perp = r - (r.u) u (|r_perp| = m):
+      0 < x < S:  Ddot = x (r_perp.a) / (m |v|),
+      x >= S:     Ddot = [-(x - S)|v| - (x - S)(|v| / a_b) u.a + (S / |v|) r_perp.a] / D,
+    written as 2 q.a >= b after multiplying by 2 a_b D / |v|, so that head-on (m = 0) A = 2 q = -2 (x - S) u is
+    the braking barrier's normal 2 r. A straight flight past a point it misses by m >= r_safe meets its row at
+    a = 0 once the stopping point is behind the point. Points behind the vehicle (x <= 0) give no row
+    (A = 0, b = -inf); where h < 0 or |v| <= ``PASSING_MIN_SPEED`` the point takes its braking row
+    (``braking_rows``), which pushes away from it. Returns (A (K, 3), b (K,), backup (K,) bool).
+    """
+    r = np.atleast_2d(np.asarray(r, dtype=np.float64))
+    v = np.asarray(v, dtype=np.float64)
+    a_mat, b = braking_rows(r, v, r_safe, brake_accel, gain)
+    speed = float(np.linalg.norm(v))
+    if speed <= PASSING_MIN_SPEED:
+        return a_mat, b, np.zeros(len(r), dtype=bool)
+    u = v / speed
+    x = -(r @ u)
+    r_perp = r + x[:, None] * u[None, :]
+    stop = speed * speed / (2.0 * brake_accel)
+    big_d = backup_distance(r, v, brake_accel)
+    use = big_d >= r_safe
+    behind = use & (x <= 0.0)
+    beside = use & (x > 0.0) & (x < stop)
+    ahead = use & (x >= stop)
+    scale = 2.0 * brake_accel / speed  # row times 2 a_b D / |v|
+    a_mat = a_mat.copy()
+    b = b.copy()
+    a_mat[behind], b[behind] = 0.0, -np.inf
+    a_mat[beside] = (x[beside] / stop)[:, None] * r_perp[beside]
+    b[beside] = -scale * gain * big_d[beside] * (big_d[beside] - r_safe)
+    t = x[ahead] - stop
+    a_mat[ahead] = -2.0 * t[:, None] * u[None, :] + r_perp[ahead]
+    b[ahead] = 2.0 * brake_accel * t - scale * gain * big_d[ahead] * (big_d[ahead] - r_safe)
+    return a_mat, b, use
+
+
 def hocbf_rows(
     r: np.ndarray, v: np.ndarray, alpha0: float, alpha1: float, r_safe: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -198,6 +265,36 @@ def _brake_rhs_d(rx: float, ry: float, rz: float, dist: float, vx: float, vy: fl
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _backup_row(rx: float, ry: float, rz: float, d: float, vx: float, vy: float, vz: float, speed: float,
+                r_safe: float, a_b: float, gain: float) -> tuple[float, float, float, float]:  # fmt: skip
+    """A point's backup-barrier row 2 q.a >= b on scalars (see ``backup_rows``), or NaNs where h < 0.
+
+    A point behind (x <= 0) outside r_safe gives (0, 0, 0, -inf): nothing to constrain. Where h < 0 the caller
+    takes the braking row instead. ``speed`` = |v| > 0, ``d`` = |r|.
+    """
+    ux, uy, uz = vx / speed, vy / speed, vz / speed
+    x = -(rx * ux + ry * uy + rz * uz)  # how far ahead along v the point lies
+    if x <= 0.0:
+        if d >= r_safe:
+            return 0.0, 0.0, 0.0, -np.inf
+        return np.nan, np.nan, np.nan, np.nan
+    px, py, pz = rx + x * ux, ry + x * uy, rz + x * uz  # r_perp = r - (r.u) u, (r.u = -x)
+    m = math.sqrt(px * px + py * py + pz * pz)
+    stop = speed * speed / (2.0 * a_b)
+    if x < stop:  # the point is beside the stopping path: D = m
+        if m < r_safe:
+            return np.nan, np.nan, np.nan, np.nan
+        w = 0.5 * x / stop
+        return w * px, w * py, w * pz, -2.0 * a_b / speed * gain * m * (m - r_safe)
+    t = x - stop
+    big_d = math.sqrt(t * t + m * m)
+    if big_d < r_safe:
+        return np.nan, np.nan, np.nan, np.nan
+    return (-t * ux + 0.5 * px, -t * uy + 0.5 * py, -t * uz + 0.5 * pz,
+            2.0 * a_b * t - 2.0 * a_b / speed * gain * big_d * (big_d - r_safe))  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _point_row(rx: float, ry: float, rz: float, d: float, vx: float, vy: float, vz: float, speed: float, k: tuple
                ) -> tuple[float, float, float, float]:  # fmt: skip
     """A point's row 2 q.a >= b at offset r (``d`` = |r|) and velocity v (``speed`` = |v|) with the braking barrier.
@@ -207,10 +304,16 @@ def _point_row(rx: float, ry: float, rz: float, d: float, vx: float, vy: float, 
     (r + S v / |v|).a >= -gain h_c - |v|^2 - |v| (r.v) / S, i.e. q = (r + S v / |v|) / 2. The safe set is the
     union {h_b >= 0} or {h_c >= 0}: holding either barrier that is non-negative keeps the point r_safe away. The
     cone row is taken where h_c >= 0 and either h_b < 0 or the cone row is the nearer to being met at the
-    acceleration ``k[6:9]`` (its value over |A| larger); otherwise the braking row (``passing_rows``).
+    acceleration ``k[6:9]`` (its value over |A| larger); otherwise the braking row (``passing_rows``). With the
+    backup barrier (``k[20]`` = 2) the point's backup row (``_backup_row``, ``backup_rows``), or its braking row
+    where the backup barrier is negative.
     """
+    if k[20] > 1.5 and speed > PASSING_MIN_SPEED:  # backup barrier
+        qx, qy, qz, b_k = _backup_row(rx, ry, rz, d, vx, vy, vz, speed, k[16], k[17], k[18])
+        if qx == qx:  # NaN: the backup barrier is negative, the braking row stands in
+            return qx, qy, qz, b_k
     b = _brake_rhs_d(rx, ry, rz, d, vx, vy, vz, k[16], k[17], k[18], k[19])
-    if k[20] > 0.5 and speed > PASSING_MIN_SPEED:
+    if 0.5 < k[20] < 1.5 and speed > PASSING_MIN_SPEED:
         s2 = d * d - k[16] * k[16]
         if s2 > PASSING_MIN_S * PASSING_MIN_S:
             rv = rx * vx + ry * vy + rz * vz
@@ -312,8 +415,9 @@ def _consts(v: np.ndarray, p_lag: np.ndarray, a: np.ndarray, v_lag: np.ndarray, 
     """The per-call constants of ``_tighter_margin`` as a tuple (a value: passing it per point costs nothing).
 
     v (3), p_lag (3), a (3), v_lag (3), 2|v|^2, 2|v_lag|^2, r_safe^2, then the barrier: ``brake`` = (braking flag,
-    brake_accel, gain, passing flag) with the flags > 0.5 for the braking barrier and for its collision-cone union
-    (``_point_row``), r_safe, the braking divisor's floor sqrt(2 brake_accel BRAKE_EPS), the passing flag, |v| and
+    brake_accel, gain, mode) with the flag > 0.5 for braking-type rows and the mode 0 / 1 / 2 for the braking
+    barrier, its collision-cone union and the backup barrier (``_point_row``), r_safe, the braking divisor's floor
+    sqrt(2 brake_accel BRAKE_EPS), the mode, |v| and
     |v_lag|.
     """
     return (v[0], v[1], v[2], p_lag[0], p_lag[1], p_lag[2], a[0], a[1], a[2], v_lag[0], v_lag[1], v_lag[2],

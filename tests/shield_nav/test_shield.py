@@ -18,6 +18,8 @@ from shield_nav.shield import (
     HOCBFShield,
     ShieldConfig,
     accel_from_command,
+    backup_distance,
+    backup_rows,
     braking_rows,
     ceiling_row,
     command_from_accel,
@@ -787,6 +789,127 @@ def test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on(offset):
     else:
         for v_min, d_min, _ in result.values():
             assert v_min < 1e-3 and d_min >= 0.3 - 0.005
+
+
+def test_backup_rows_hand_computed():
+    # 9 m/s along +x, a_b 10, gain 4, r_safe 0.3: the backup maneuver stops S = 81 / 20 = 4.05 m on.
+    # (a) A point 3 m ahead, 1 m aside, r = p - o = (-3, 1, 0): x = 3 < S, so D = m = 1, h = 0.7; r_perp = (0, 1, 0);
+    #     A = (x / S) r_perp = (0, 0.740741, 0), b = -(2 a_b / |v|) gain m (m - r_safe) = -(20 / 9) 4 0.7 = -6.222222:
+    #     a = 0 meets it (the braking row asks 2 r.a >= 92.4 here at a_b 8, test_passing_row_hand_computed).
+    # (b) 6 m ahead, 1 m aside: x - S = 1.95, D = sqrt(1.95^2 + 1) = 2.191461; A = -2 (x - S) u + r_perp =
+    #     (-3.9, 1, 0), b = 2 a_b (x - S) - (20 / 9) 4 D (D - 0.3) = 39 - 36.844994 = 2.155006 (a = 0 breaks it; the
+    #     row asks a_x <= -0.5526: mild braking while the stopping point still lies short of the point).
+    # (c) 2 m behind, 1 m aside: no row (A = 0, b = -inf).
+    # (d) 3 m ahead, 0.1 m aside: D = 0.1 < r_safe (the backup maneuver would pass too close): the braking row.
+    r, v = np.array([[-3.0, 1.0, 0.0], [-6.0, 1.0, 0.0], [2.0, 1.0, 0.0], [-3.0, 0.1, 0.0]]), np.array([9.0, 0, 0])
+    a_mat, b_vec, use = backup_rows(r, v, 0.3, 10.0, 4.0)
+    assert use.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(backup_distance(r, v, 10.0), [1.0, 2.191461, math.sqrt(5.0), 0.1], atol=1e-6)
+    np.testing.assert_allclose(a_mat[:3], [[0.0, 0.740741, 0.0], [-3.9, 1.0, 0.0], [0.0, 0.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(b_vec[:2], [-6.222222, 2.155006], atol=1e-6)
+    assert b_vec[2] == -np.inf
+    a_brake, b_brake = braking_rows(r[3:], v, 0.3, 10.0, 4.0)
+    np.testing.assert_array_equal(a_mat[3:], a_brake)
+    np.testing.assert_array_equal(b_vec[3:], b_brake)
+    # Head-on, 6 m ahead: A = -2 (x - S) u = 2 r-direction, the braking barrier's normal; braking at a_b along -v
+    # meets the row with gain * D (D - r_safe) to spare.
+    a_mat, b_vec, _ = backup_rows(np.array([[-6.0, 0.0, 0.0]]), v, 0.3, 10.0, 4.0)
+    np.testing.assert_allclose(a_mat, [[-3.9, 0.0, 0.0]])
+    assert a_mat[0] @ np.array([-10.0, 0, 0]) - b_vec[0] == pytest.approx(20.0 / 9.0 * 4.0 * 1.95 * 1.65)
+    # Slower than PASSING_MIN_SPEED: braking rows only.
+    assert not backup_rows(r, np.array([0.4, 0.0, 0.0]), 0.3, 10.0, 4.0)[2].any()
+
+
+def test_backup_row_is_the_first_order_cbf_of_the_backup_distance():
+    """On random states the row's value A.a - b equals (2 a_b D / |v|)(Ddot + gain h), h = D - r_safe, with Ddot from
+    finite differences of ``backup_distance`` along p(t) = p0 + v0 t + a t^2 / 2; both sides of the stopping point
+    occur."""
+    rng = np.random.default_rng(3)
+    a_b, gain, rs = 10.0, 4.0, 0.3
+    seen = {"beside": 0, "ahead": 0}
+    for _ in range(400):
+        p0, v0, acc = rng.normal(0, 1, 3), rng.normal(0, 4, 3), rng.normal(0, 5, 3)
+        o = p0 + rng.normal(0, 3, 3)
+        a_mat, b_vec, use = backup_rows((p0 - o)[None], v0, rs, a_b, gain)
+        if not use[0] or not np.isfinite(b_vec[0]):
+            continue
+        big_d, d_dot = _barrier_and_rate(lambda r, v: backup_distance(r[None], v, a_b)[0], p0, v0, acc, o, eps=1e-6)
+        speed = np.linalg.norm(v0)
+        expect = 2.0 * a_b * big_d / speed * (d_dot + gain * (big_d - rs))
+        assert a_mat[0] @ acc - b_vec[0] == pytest.approx(expect, rel=1e-5, abs=1e-5)
+        x = (o - p0) @ v0 / speed
+        seen["beside" if x < speed**2 / (2 * a_b) else "ahead"] += 1
+    assert min(seen.values()) > 30
+
+
+def test_backup_rows_hold_together_under_the_backup_maneuver():
+    """The property the per-point unions lacked: wherever every point's backup barrier is non-negative, braking
+    straight along -v at a_b meets all their rows at once (random clouds; the rows are the kernel's)."""
+    shield = HOCBFShield(ShieldConfig(barrier="backup", lag_s=0.0))
+    cfg = shield.cfg
+    checked = 0
+    for p, v, pts, cmd in _random_clouds(120, 17):
+        if np.any(backup_distance(p - pts, v, cfg.brake_accel) < cfg.r_safe):
+            continue
+        _, a_mat, b_vec = shield.constraints(pts, p, v, accel_from_command(cmd)[0])
+        a_brake = -cfg.brake_accel * v / np.linalg.norm(v)
+        assert np.all(a_mat @ a_brake - b_vec >= -1e-9)
+        checked += 1
+    assert checked > 20
+
+
+@pytest.mark.parametrize("lag", [False, True])
+def test_backup_kernel_rows_equal_the_reference(lag):
+    """The numba selection's rows with ``barrier: backup`` are ``backup_rows`` of the selected points (with the lag,
+    at the lagged state where that row is the tighter), and both backup and braking (fallback) rows occur."""
+    rng = np.random.default_rng(6)
+    shield = HOCBFShield(ShieldConfig(barrier="backup", lag_s=0.0))
+    cfg = shield.cfg
+    backups = rows = 0
+    for p, v, pts, cmd in _random_clouds(80, 13):
+        a_raw = accel_from_command(cmd)[0]
+        lagged = (p + 0.15 * v + rng.normal(0.0, 0.1, 3), v + rng.normal(0.0, 1.0, 3)) if lag else None
+        _, a_mat, b_vec = shield.constraints(pts, p, v, a_raw, lagged)
+        for o, a_row, b in zip(shield._o_buf[: len(b_vec)], a_mat, b_vec, strict=True):
+            cands = [(p, v)] + ([lagged] if lag and (lagged[0] - o) @ (p - o) > 0 else [])
+            ref = [backup_rows((ps - o)[None], vs, cfg.r_safe, cfg.brake_accel, cfg.brake_gain) for ps, vs in cands]
+            vals = [a_r[0] @ a_raw - b_r[0] for a_r, b_r, _ in ref]
+            a_ref, b_ref, u_ref = ref[1] if len(vals) == 2 and vals[1] < vals[0] else ref[0]
+            np.testing.assert_allclose(a_row, a_ref[0], rtol=1e-9, atol=1e-9)
+            assert b == pytest.approx(b_ref[0], rel=1e-9, abs=1e-9)
+            backups += int(u_ref[0])
+            rows += 1
+    assert rows > 300 and 0 < backups < rows
+
+
+@pytest.mark.parametrize("gain", [4.0, 16.0])
+@pytest.mark.parametrize("offset", [1.0, 0.6, 0.0])
+def test_backup_barrier_keeps_speed_beside_obstacles_and_still_stops_head_on(offset, gain):
+    """The row of poles of ``test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on`` at 9 m/s, a_raw = 0,
+    no lag. Behind the backup barrier at the default gain 4 the vehicle keeps more than 7.8 m/s past poles 1.0 / 0.6 m
+    aside (measured 8.6 / 8.0 m/s; the braking barrier: 7.2 / 6.0): while a pole still lies beyond the stopping
+    point, the gain-4 approach condition brakes and steers a little, and it passes at least ``offset`` away. At gain
+    16 the shield leaves it alone. Head-on it stops outside r_safe at either gain."""
+    xs, zs = np.arange(5.0, 45.0, 3.0), np.linspace(0.5, 2.5, 9)
+    poles = np.array([[x, offset, z] for x in xs for z in zs])
+    cmd = np.array([[G, 0.0, 0.0, 0.0]])
+    shield = HOCBFShield(ShieldConfig(barrier="backup", lag_s=0.0, memory_steps=0, brake_gain=gain))
+    pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
+    v_min = d_min = math.inf
+    active = 0
+    for _ in range(600):  # 3 s in 5 ms steps
+        out = shield.filter(cmd, pos[None], vel[None], points_w=[poles])
+        active += int(out.active[0])
+        vel = vel + 0.005 * out.accel_safe[0]
+        pos = pos + 0.005 * vel
+        v_min = min(v_min, float(np.linalg.norm(vel)))
+        d_min = min(d_min, float(np.min(np.linalg.norm(poles - pos, axis=1))))
+    if offset == 0:
+        assert v_min < 0.01 and d_min >= 0.3 - 0.005
+    elif gain == 4.0:
+        assert 7.8 < v_min < 9.0 and active > 0 and d_min >= offset - 1e-3
+    else:
+        assert active == 0 and v_min == 9.0 and d_min == pytest.approx(offset, abs=1e-4)
 
 
 def test_solver_failure_falls_back_to_a_flyable_braking_command():

@@ -5,8 +5,9 @@ from the shielded scripted flights at 3/5/7/9 m/s, so the QPs are the ones the s
 solver: QP time over the steps where the shield was active (mean, p99, max) and the active fraction; separately the
 point-cloud + constraint-selection cost and the whole shield step (point cloud, selection, QP, conversion back).
 ``formulations`` compares, in the same run, the whole step and the QP of the default shield against the paper's
-formulation (``PAPER_FORMULATION``: one-shot selection, no lag, p1 = p2 = 4 /s), since absolute CPU times move
-2-3x between machines of this kind; the two replay the states in lockstep, so a slow spell hits both alike.
+formulation (``PAPER_FORMULATION``: one-shot selection, no lag, p1 = p2 = 4 /s) and the backup-barrier option
+(``barrier: backup``), since absolute CPU times move 2-3x between machines of this kind; they replay the states in
+lockstep, so a slow spell hits all alike.
 """
 
 from __future__ import annotations
@@ -114,6 +115,7 @@ def main(argv: list[str]) -> dict:
     shields = {
         "default": HOCBFShield(ShieldConfig(), cam),
         "paper": HOCBFShield(ShieldConfig(**PAPER_FORMULATION), cam),
+        "backup": HOCBFShield(ShieldConfig(barrier="backup"), cam),  # the option of docs/shield.md, "Backup barrier"
     }
     for name, (solve, total, active) in replay_interleaved(shields, states, args.repeats).items():
         formulations[name] = {"qp": _stats(solve), "whole_step": _stats(total),

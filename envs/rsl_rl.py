@@ -18,7 +18,9 @@ expert    (N, 4)                a scripted expert's normalised action for the cu
 With a ``command_filter`` (the HOCBF shield in the loop, ``shield_in_loop`` of the train config), every step's
 actions are mapped to commands, filtered, and the filtered commands are flown (``NavigationEnv.step(commands=)``):
 the learner trains the system it is deployed as; ``extras["log"]["shield/active"]`` is the share of envs whose command
-the filter changed that step.
+the filter changed that step and ``shield/correction`` the mean size of the change [m/s^2]. With ``filter_penalty``
+(``shield_penalty`` of the train config) each step's reward loses that times the env's change, logged as
+``reward/shield``.
 
 ``extras["time_outs"]`` (N,) marks truncations for bootstrapping; ``extras["log"]`` holds per-step reward-term means
 and, for finished episodes, their outcomes (success, collision, timeout, out of bounds), mean speed and clearance,
@@ -41,8 +43,11 @@ from envs.navigation import NavigationEnv
 class CommandFilter(Protocol):
     """A per-step command filter between the learner's actions and the vehicles (e.g. the HOCBF shield)."""
 
-    def __call__(self, env: NavigationEnv, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The commands (N, 4) to fly for normalised ``actions`` (N, 4), and which of them the filter changed (N,)."""
+    def __call__(self, env: NavigationEnv, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The commands (N, 4) to fly, which the filter changed (N,), and by how much (N,) [m/s^2].
+
+        ``actions`` (N, 4) are normalised; the size of a change is that of the commanded acceleration.
+        """
         ...
 
     def reset(self, ids: np.ndarray) -> None:
@@ -66,10 +71,16 @@ class RslRlVecEnv(VecEnv):
         device: str | torch.device = "cpu",
         expert: Callable[[NavigationEnv], np.ndarray] | None = None,
         command_filter: CommandFilter | None = None,
+        filter_penalty: float = 0.0,
     ) -> None:  # noqa: D107
+        if filter_penalty and command_filter is None:
+            raise ValueError(f"filter_penalty {filter_penalty} needs a command_filter")
+        if not (np.isfinite(filter_penalty) and filter_penalty >= 0):
+            raise ValueError(f"filter_penalty must be a finite number >= 0, got {filter_penalty}")
         self.env = env
         self.expert = expert
         self.command_filter = command_filter
+        self.filter_penalty = float(filter_penalty)
         self.cfg = env.cfg
         self.device = torch.device(device)
         self.num_envs = env.num_envs
@@ -134,16 +145,23 @@ class RslRlVecEnv(VecEnv):
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """Step with actions (N, 4); returns observations, rewards (N,), dones (N,) and extras."""
         act = actions.detach().cpu().numpy().astype(np.float64)
-        commands = active = None
+        commands = active = correction = None
         if self.command_filter is not None:
-            commands, active = self.command_filter(self.env, act)
+            commands, active, correction = self.command_filter(self.env, act)
         obs, rew, term, trunc, info = self.env.step(act, commands=commands)
+        penalty = None
+        if self.filter_penalty:
+            penalty = -self.filter_penalty * correction
+            rew = rew + penalty
         if self.command_filter is not None:
             self.command_filter.reset(np.flatnonzero(term | trunc))
         self._obs = self._to_tensordict(obs, info)
         log = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in info["log"].items()}
         if active is not None:
             log["shield/active"] = torch.as_tensor(float(np.mean(active)), dtype=torch.float32)
+            log["shield/correction"] = torch.as_tensor(float(np.mean(correction)), dtype=torch.float32)
+        if penalty is not None:
+            log["reward/shield"] = torch.as_tensor(float(np.mean(penalty)), dtype=torch.float32)
         extras = {"time_outs": torch.from_numpy(trunc).to(self.device), "log": log}
         dones = torch.from_numpy(term | trunc).to(self.device)
         return self._obs, torch.from_numpy(rew.astype(np.float32)).to(self.device), dones, extras

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
+import math
 import os
 import warnings
 from collections.abc import Sequence
@@ -318,6 +319,10 @@ class TrainConfig:
     (the paper's training)."""
     shield: ShieldConfig = field(default_factory=ShieldConfig)
     """The shield of ``shield_in_loop`` (:class:`shield_nav.shield.ShieldConfig`; defaults = the evaluation's)."""
+    shield_penalty: float = 0.0
+    """Intervention penalty of ``shield_in_loop``: each step's reward loses this times the shield's correction
+    ``|a_safe - a_raw|`` [1 per m/s^2] (logged as ``reward/shield``), so the policy is paid for flying what the
+    shield lets through unchanged rather than for leaning on it. 0: off (the shipped Full)."""
 
     def validate(self, prefix: str = "") -> None:
         """Cross-field checks naming the key."""
@@ -330,6 +335,10 @@ class TrainConfig:
         )
         r = self.runner
         self.shield.validate(f"{prefix}shield.")
+        pen = self.shield_penalty
+        require(math.isfinite(pen) and pen >= 0, f"{prefix}shield_penalty", f"must be a finite number >= 0, got {pen}")
+        require(pen == 0 or self.shield_in_loop, f"{prefix}shield_penalty",
+                f"{pen} needs shield_in_loop: true (it penalises the shield's corrections)")  # fmt: skip
         require(r.num_steps_per_env >= 1, f"{prefix}runner.num_steps_per_env", "must be >= 1")
         require(r.save_interval >= 1, f"{prefix}runner.save_interval", "must be >= 1")
         runners = ("OnPolicyRunner", "DistillationRunner")

@@ -122,7 +122,8 @@ def make_env(cfg: TrainConfig) -> VecEnv:
         from shield_nav.training.shield_loop import ShieldInLoop
 
         command_filter = ShieldInLoop(cfg.shield, cfg.env.camera)
-    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert, command_filter=command_filter)
+    return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert, command_filter=command_filter,
+                       filter_penalty=cfg.shield_penalty)  # fmt: skip
 
 
 def _randomize_episode_lengths(env: VecEnv) -> None:

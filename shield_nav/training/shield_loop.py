@@ -29,11 +29,15 @@ class ShieldInLoop:
     def __init__(self, cfg: ShieldConfig, camera: CameraConfig) -> None:  # noqa: D107
         self.shield = HOCBFShield(cfg, camera)
 
-    def __call__(self, env: NavigationEnv, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Commands (N, 4) after the shield for normalised ``actions`` (N, 4), and which of them it changed (N,)."""
+    def __call__(self, env: NavigationEnv, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Commands (N, 4) after the shield for normalised ``actions`` (N, 4), which it changed, and by how much.
+
+        The size of a change (N,) is ``|a_safe - a_raw|`` [m/s^2], 0 where the shield changed nothing.
+        """
         cmd = env.action_to_command(np.clip(actions, -1.0, 1.0))
         out = self.shield.filter_env(env, cmd)
-        return out.command, out.active
+        correction = np.where(out.active, np.linalg.norm(out.accel_safe - out.accel_raw, axis=1), 0.0)
+        return out.command, out.active, correction
 
     def reset(self, ids: np.ndarray) -> None:
         """Forget the per-vehicle state (previous velocity, point memory) of envs ``ids``."""

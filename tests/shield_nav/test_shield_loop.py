@@ -16,6 +16,7 @@ from shield_nav.training.config import ConfigError, load_train_config
 from shield_nav.training.shield_loop import ShieldInLoop
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+W = 0.01  # intervention penalty per m/s^2 of correction
 SMALL = {"scenes.indices": [0, 1]}  # randomization on: both envs draw it from the same seed
 # Two vehicles that fly straight at their goals at 9 m/s through ablation-family clutter: the shield must act.
 OPTS = {"scene_ids": [0, 1], "start": [[0.5, 1.0, 1.5]] * 2, "goal": [[63.5, 2.0, 1.5]] * 2, "speed": [9.0, 9.0],
@@ -29,27 +30,35 @@ def _env():
 
 
 def test_the_adapter_flies_exactly_what_an_independent_shield_commands():
+    # With the intervention penalty on: the reward is the env's minus W x the independent shield's correction.
     looped, ref, alone = _env(), _env(), _env()
-    vec = RslRlVecEnv(looped, command_filter=ShieldInLoop(ShieldConfig(), looped.cfg.camera))
+    vec = RslRlVecEnv(looped, command_filter=ShieldInLoop(ShieldConfig(), looped.cfg.camera), filter_penalty=W)
     looped.reset(seed=0, options=OPTS)  # the adapter's own reset drew random episodes; restart both on OPTS
     shield = HOCBFShield(ShieldConfig(), ref.cfg.camera)
     goal = make_baseline("goal", BaselineConfig())
     goal.reset(ref)
-    active_steps = 0
+    active_steps, corrections = 0, []
     for _ in range(150):
         act = np.clip(ref.command_to_action(goal.commands(ref)), -1.0, 1.0)
         out = shield.filter(ref.action_to_command(act), ref.local_pos, ref.vehicles.vel_w, depth=ref.sensor_depth_buf,
                             R_wb=ref.vehicles.R_wb)  # fmt: skip
-        _, _, term, trunc, _ = ref.step(act, commands=out.command)
+        _, rew, term, trunc, _ = ref.step(act, commands=out.command)
         shield.reset(np.flatnonzero(term | trunc))
         alone.step(act)
-        _, _, done, extras = vec.step(torch.from_numpy(act))
+        _, vec_rew, done, extras = vec.step(torch.from_numpy(act))
         np.testing.assert_array_equal(looped.local_pos, ref.local_pos)
         np.testing.assert_array_equal(looped.vehicles.vel_w, ref.vehicles.vel_w)
         np.testing.assert_array_equal(done.numpy(), term | trunc)
         assert float(extras["log"]["shield/active"]) == pytest.approx(out.active.mean())
+        corr = np.sqrt(np.sum((out.accel_safe - out.accel_raw) ** 2, axis=1))
+        assert np.all(corr[~out.active] == 0.0)  # an unchanged command costs nothing
+        np.testing.assert_allclose(vec_rew.numpy(), rew - W * corr, rtol=1e-6, atol=1e-6)
+        assert float(extras["log"]["shield/correction"]) == pytest.approx(corr.mean(), rel=1e-6)
+        assert float(extras["log"]["reward/shield"]) == pytest.approx(-W * corr.mean(), rel=1e-6)
         active_steps += int(out.active.sum())
+        corrections.append(corr[out.active])
     assert active_steps > 20  # the shield acted, so the equality above says something
+    assert np.concatenate(corrections).min() > 0.1  # and each act changed the acceleration (a penalty was paid)
     assert not np.array_equal(alone.local_pos, ref.local_pos)  # and what it did changed the flight
 
 
@@ -74,6 +83,14 @@ def test_shield_keys_of_the_train_config_are_checked_by_name():
         load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["shield.bogus=1"])
     with pytest.raises(ConfigError, match="shield.r_safe"):
         load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["shield.r_safe=-1"])
+    with pytest.raises(ConfigError, match="shield_penalty.*needs shield_in_loop"):
+        load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["shield_penalty=0.01"])
+    for bad in ("-0.01", "nan", "inf"):
+        with pytest.raises(ConfigError, match="shield_penalty"):
+            load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["shield_in_loop=true",
+                                                                                 f"shield_penalty={bad}"])  # fmt: skip
+    with pytest.raises(ValueError, match="filter_penalty"):
+        RslRlVecEnv(_env(), filter_penalty=0.01)  # a penalty with no filter to pay it
 
 
 def test_train_cli_with_the_shield_in_the_loop_logs_its_activity(tmp_path):
@@ -81,7 +98,8 @@ def test_train_cli_with_the_shield_in_the_loop_logs_its_activity(tmp_path):
 
     root = str(tmp_path / "logs")
     args = ["--config", "configs/train/quick.yaml", "--num-envs", "4", "--set", "runner.num_steps_per_env=8",
-            "--set", "shield_in_loop=true", "--max-iterations", "2", "--log-dir", root]  # fmt: skip
+            "--set", "shield_in_loop=true", "shield_penalty=0.01",
+            "--max-iterations", "2", "--log-dir", root]  # fmt: skip
     res = subprocess.run([sys.executable, "train.py", *args], cwd=REPO, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-3000:]
     (run,) = [os.path.join(root, "quick", d) for d in os.listdir(os.path.join(root, "quick"))]
@@ -89,5 +107,10 @@ def test_train_cli_with_the_shield_in_the_loop_logs_its_activity(tmp_path):
     acc.Reload()
     values = [e.value for e in acc.Scalars("shield/active")]
     assert len(values) == 2 and all(0.0 <= v <= 1.0 for v in values)
+    corr = [e.value for e in acc.Scalars("shield/correction")]
+    paid = [e.value for e in acc.Scalars("reward/shield")]  # rsl-rl's per-iteration means of the step logs
+    assert len(corr) == len(paid) == 2 and all(c >= 0 for c in corr)
+    np.testing.assert_allclose(paid, [-0.01 * c for c in corr], rtol=1e-5, atol=1e-9)
     stored = torch.load(os.path.join(run, "model_1.pt"), weights_only=False)["infos"]["config"]
     assert stored["shield_in_loop"] is True and stored["shield"]["brake_accel"] == ShieldConfig().brake_accel
+    assert stored["shield_penalty"] == 0.01

@@ -757,6 +757,27 @@ def test_passing_kernel_rows_equal_the_reference(lag):
     assert rows > 300 and 0 < cones < rows
 
 
+def _fly_past_poles(cfg: ShieldConfig, offset: float) -> tuple[float, float, int]:
+    """A point mass at 9 m/s along +x with a_raw = 0 past a row of poles ``offset`` beside its path (points every
+    3 m from x = 5 m, 0.5-2.5 m high), 3 s in 5 ms Euler steps behind ``cfg``'s shield: its lowest speed, its
+    closest distance to a pole point, and the steps on which the shield acted."""
+    xs, zs = np.arange(5.0, 45.0, 3.0), np.linspace(0.5, 2.5, 9)
+    poles = np.array([[x, offset, z] for x in xs for z in zs])
+    cmd = np.array([[G, 0.0, 0.0, 0.0]])
+    shield = HOCBFShield(cfg)
+    pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
+    v_min = d_min = math.inf
+    active = 0
+    for _ in range(600):
+        out = shield.filter(cmd, pos[None], vel[None], points_w=[poles])
+        active += int(out.active[0])
+        vel = vel + 0.005 * out.accel_safe[0]
+        pos = pos + 0.005 * vel
+        v_min = min(v_min, float(np.linalg.norm(vel)))
+        d_min = min(d_min, float(np.min(np.linalg.norm(poles - pos, axis=1))))
+    return v_min, d_min, active
+
+
 @pytest.mark.parametrize("offset", [1.0, 0.6, 0.0])
 def test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on(offset):
     """A point mass cruising at 9 m/s (a_raw = 0, no lag) along a row of poles (points every 3 m, 0.5-2.5 m high)
@@ -765,23 +786,10 @@ def test_passing_keeps_speed_beside_obstacles_and_still_stops_head_on(offset):
     brakes for every pole (measured with the default a_b 10: down to 7.2 / 6.0 m/s at offsets 1.0 / 0.6; with a_b 8,
     6.9 / 5.7) and pushes the vehicle aside. Head-on
     (offset 0) both stop outside r_safe."""
-    xs, zs = np.arange(5.0, 45.0, 3.0), np.linspace(0.5, 2.5, 9)
-    poles = np.array([[x, offset, z] for x in xs for z in zs])
-    cmd = np.array([[G, 0.0, 0.0, 0.0]])
-    result = {}
-    for passing in (False, True):
-        shield = HOCBFShield(ShieldConfig(lag_s=0.0, memory_steps=0, passing=passing))
-        pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
-        v_min = d_min = math.inf
-        active = 0
-        for _ in range(600):  # 3 s in 5 ms steps
-            out = shield.filter(cmd, pos[None], vel[None], points_w=[poles])
-            active += int(out.active[0])
-            vel = vel + 0.005 * out.accel_safe[0]
-            pos = pos + 0.005 * vel
-            v_min = min(v_min, float(np.linalg.norm(vel)))
-            d_min = min(d_min, float(np.min(np.linalg.norm(poles - pos, axis=1))))
-        result[passing] = (v_min, d_min, active)
+    result = {
+        passing: _fly_past_poles(ShieldConfig(lag_s=0.0, memory_steps=0, passing=passing), offset)
+        for passing in (False, True)
+    }
     if offset > 0:
         v_min, d_min, active = result[True]
         assert active == 0 and v_min == 9.0 and d_min == pytest.approx(offset, abs=1e-4)  # sampled every 4.5 cm
@@ -890,20 +898,8 @@ def test_backup_barrier_keeps_speed_beside_obstacles_and_still_stops_head_on(off
     aside (measured 8.6 / 8.0 m/s; the braking barrier: 7.2 / 6.0): while a pole still lies beyond the stopping
     point, the gain-4 approach condition brakes and steers a little, and it passes at least ``offset`` away. At gain
     16 the shield leaves it alone. Head-on it stops outside r_safe at either gain."""
-    xs, zs = np.arange(5.0, 45.0, 3.0), np.linspace(0.5, 2.5, 9)
-    poles = np.array([[x, offset, z] for x in xs for z in zs])
-    cmd = np.array([[G, 0.0, 0.0, 0.0]])
-    shield = HOCBFShield(ShieldConfig(barrier="backup", lag_s=0.0, memory_steps=0, brake_gain=gain))
-    pos, vel = np.array([0.0, 0.0, 1.5]), np.array([9.0, 0.0, 0.0])
-    v_min = d_min = math.inf
-    active = 0
-    for _ in range(600):  # 3 s in 5 ms steps
-        out = shield.filter(cmd, pos[None], vel[None], points_w=[poles])
-        active += int(out.active[0])
-        vel = vel + 0.005 * out.accel_safe[0]
-        pos = pos + 0.005 * vel
-        v_min = min(v_min, float(np.linalg.norm(vel)))
-        d_min = min(d_min, float(np.min(np.linalg.norm(poles - pos, axis=1))))
+    cfg = ShieldConfig(barrier="backup", lag_s=0.0, memory_steps=0, brake_gain=gain)
+    v_min, d_min, active = _fly_past_poles(cfg, offset)
     if offset == 0:
         assert v_min < 0.01 and d_min >= 0.3 - 0.005
     elif gain == 4.0:

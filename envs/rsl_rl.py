@@ -73,10 +73,10 @@ class RslRlVecEnv(VecEnv):
         command_filter: CommandFilter | None = None,
         filter_penalty: float = 0.0,
     ) -> None:  # noqa: D107
-        if filter_penalty and command_filter is None:
-            raise ValueError(f"filter_penalty {filter_penalty} needs a command_filter")
         if not (np.isfinite(filter_penalty) and filter_penalty >= 0):
             raise ValueError(f"filter_penalty must be a finite number >= 0, got {filter_penalty}")
+        if filter_penalty and command_filter is None:
+            raise ValueError(f"filter_penalty {filter_penalty} needs a command_filter")
         self.env = env
         self.expert = expert
         self.command_filter = command_filter

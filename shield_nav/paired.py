@@ -1,6 +1,7 @@
 """Is row B better than row A? A paired comparison of two evaluated rows over the same seeded trials.
 
-``python -m shield_nav.paired OUT_A:ROW_A OUT_B:ROW_B [OUT_A2:ROW_A2 OUT_B2:ROW_B2 ...] [--speeds 3] [--json]``, e.g.
+``python -m shield_nav.paired OUT_A:ROW_A OUT_B:ROW_B [OUT_A2:ROW_A2 OUT_B2:ROW_B2 ...] [--speeds 3] [--below-tops]
+[--json]``, e.g.
 ``python -m shield_nav.paired eval_out/ablation:oracle_distilled eval_out/ablation:oracle_distilled_shield``
 
 Every ``eval.py`` row flies the same pinned trials (trial ``j`` of scene ``k`` at speed ``v`` has one seed, start and
@@ -13,6 +14,10 @@ seeds, starts or goals differ (different ``--seed`` or scenes), and reports:
 * the discordant pairs: ``a_only`` (A succeeded, B did not) and ``b_only``;
 * the exact two-sided McNemar test: under "A and B are equally good" each discordant pair is a fair coin, so
   ``p = min(1, 2 P(X <= min(a_only, b_only)))`` with ``X ~ Binomial(a_only + b_only, 1/2)``.
+
+``--below-tops`` counts a success only where the flight stayed below the obstacles' tops (the trial's
+``metrics.flew_over`` is 0): a shield or policy that lets the vehicle climb over the clutter can gain successes that
+way, which the plain comparison would credit (docs/evaluation.md). A trial recorded without the metric is refused.
 
 Several pairs (``A1 B1 A2 B2 ...``) are replicates of one comparison, e.g. the same two training recipes run with
 two training seeds: each pair is reported on its own, then **pooled**, the discordant pairs of all replicates summed
@@ -69,8 +74,24 @@ def _trials(spec: str, speeds: list[float] | None) -> dict[tuple, dict]:
     return found
 
 
-def paired_outcomes(a: str, b: str, speeds: list[float] | None = None) -> list[tuple[tuple, bool, bool]]:
+def _succeeded(trial: dict, below_tops: bool, key: tuple) -> bool:
+    """Whether ``trial`` reached the goal (and, with ``below_tops``, did so without passing over the obstacles)."""
+    if trial["outcome"] != "success":
+        return False
+    if not below_tops:
+        return True
+    over = trial.get("metrics", {}).get("flew_over")
+    if over is None:
+        raise ValueError(f"trial {key} has no metrics.flew_over: --below-tops needs an eval.py output that records it")
+    return not over
+
+
+def paired_outcomes(
+    a: str, b: str, speeds: list[float] | None = None, below_tops: bool = False
+) -> list[tuple[tuple, bool, bool]]:
     """The trials both rows flew: ``(key, a_succeeded, b_succeeded)``, sorted by key.
+
+    With ``below_tops`` a success over the obstacles' tops counts as a failure.
 
     Raises:
         ValueError: No common trial, or a common trial whose seed, start or goal differ between the two.
@@ -86,13 +107,13 @@ def paired_outcomes(a: str, b: str, speeds: list[float] | None = None) -> list[t
             if field in x and field in y and x[field] != y[field]:
                 raise ValueError(f"trial {key} differs in {field!r} between {a} and {b}: not the same trials "
                                  "(different eval --seed?)")  # fmt: skip
-        pairs.append((key, x["outcome"] == "success", y["outcome"] == "success"))
+        pairs.append((key, _succeeded(x, below_tops, key), _succeeded(y, below_tops, key)))
     return pairs
 
 
-def compare(a: str, b: str, speeds: list[float] | None = None) -> dict:
+def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool = False) -> dict:
     """Paired success rates, discordant counts and the exact McNemar p-value of rows ``a`` and ``b``."""
-    pairs = paired_outcomes(a, b, speeds)
+    pairs = paired_outcomes(a, b, speeds, below_tops)
     n = len(pairs)
     sa, sb = sum(p[1] for p in pairs), sum(p[2] for p in pairs)
     a_only = sum(p[1] and not p[2] for p in pairs)
@@ -102,15 +123,15 @@ def compare(a: str, b: str, speeds: list[float] | None = None) -> dict:
         "a_success": sa / n, "a_interval": list(wilson_interval(sa, n)),
         "b_success": sb / n, "b_interval": list(wilson_interval(sb, n)),
         "a_only": a_only, "b_only": b_only, "p_mcnemar": mcnemar_exact(a_only, b_only),
-        "speeds": sorted({p[0][2] for p in pairs}),
+        "speeds": sorted({p[0][2] for p in pairs}), "below_tops": below_tops,
     }  # fmt: skip
 
 
-def compare_pooled(specs: list[tuple[str, str]], speeds: list[float] | None = None) -> dict:
+def compare_pooled(specs: list[tuple[str, str]], speeds: list[float] | None = None, below_tops: bool = False) -> dict:
     """:func:`compare` of every ``(a, b)`` pair, and the pooled counts and exact McNemar test over all of them."""
     if not specs:
         raise ValueError("no (A, B) pair to compare")
-    pairs = [compare(a, b, speeds) for a, b in specs]
+    pairs = [compare(a, b, speeds, below_tops) for a, b in specs]
     n = sum(r["n"] for r in pairs)
     sa = round(sum(r["a_success"] * r["n"] for r in pairs))
     sb = round(sum(r["b_success"] * r["n"] for r in pairs))
@@ -133,7 +154,8 @@ def format_report(res: dict) -> str:
     lo_a, hi_a = res["a_interval"]
     lo_b, hi_b = res["b_interval"]
     return "\n".join([
-        f"{res['n']} paired trials at {', '.join(f'{s:g}' for s in res['speeds'])} m/s",
+        f"{res['n']} paired trials at {', '.join(f'{s:g}' for s in res['speeds'])} m/s"
+        + (" (successes below the obstacles' tops only)" if res.get("below_tops") else ""),
         f"A {res['a']}: {pct(res['a_success'])} % [{pct(lo_a)}, {pct(hi_a)}]",
         f"B {res['b']}: {pct(res['b_success'])} % [{pct(lo_b)}, {pct(hi_b)}]",
         f"discordant: A only {res['a_only']}, B only {res['b_only']}; exact McNemar p = {res['p_mcnemar']:.2g}",
@@ -147,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="A then B, e.g. eval_out/ablation:oracle_distilled_shapes_3ms eval_out/ablation:oracle; "
                          "more A B pairs (replicates, e.g. training seeds) are reported and pooled")  # fmt: skip
     ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all in common)")
+    ap.add_argument("--below-tops", action="store_true",
+                    help="count a success only where the flight stayed below the obstacles' tops")  # fmt: skip
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     args = ap.parse_args(argv)
     try:
@@ -157,7 +181,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"expected A B pairs of OUT_DIR:ROW, got an odd count ({len(args.specs)})")
     specs = list(zip(args.specs[::2], args.specs[1::2], strict=True))
     try:
-        res = compare(*specs[0], speeds) if len(specs) == 1 else compare_pooled(specs, speeds)
+        if len(specs) == 1:
+            res = compare(*specs[0], speeds, args.below_tops)
+        else:
+            res = compare_pooled(specs, speeds, args.below_tops)
     except (ValueError, FileNotFoundError) as err:
         ap.error(str(err))
     if args.json:

@@ -21,11 +21,14 @@ def test_mcnemar_exact_by_hand():
         mcnemar_exact(-1, 2)
 
 
-def _write(root, row, outcomes, speed=3.0, scene=0, seed_offset=0):
+def _write(root, row, outcomes, speed=3.0, scene=0, seed_offset=0, over=None):
     units = root / "units"
     units.mkdir(parents=True, exist_ok=True)
     trials = [{"trial": j, "seed": 100 + j + seed_offset, "start": [0.0, float(j), 1.5], "goal": [60.0, 0.0, 1.5],
                "outcome": o} for j, o in enumerate(outcomes)]  # fmt: skip
+    if over is not None:
+        for t, f in zip(trials, over, strict=True):
+            t["metrics"] = {"flew_over": float(f)}
     unit = {"row": row, "family": "ablation", "scene": scene, "speed": speed, "trials": trials}
     (units / f"{row}__ablation-{scene:02d}__v{speed:g}.json").write_text(json.dumps(unit))
 
@@ -99,3 +102,23 @@ def test_mcnemar_exact_equals_the_hand_sum_of_binomial_terms():
             n, k = a + b, min(a, b)
             want = 1.0 if n == 0 else min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n)
             assert mcnemar_exact(a, b) == pytest.approx(want, rel=1e-12)
+
+
+def test_below_tops_counts_a_success_over_the_obstacles_as_a_failure(tmp_path, capsys):
+    s, c = "success", "collision"
+    _write(tmp_path / "a", "old", [s, s, c, c, s], over=[0, 0, 0, 0, 0])
+    _write(tmp_path / "b", "new", [s, s, s, s, c], over=[0, 1, 1, 0, 0])
+    a, b = f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new"
+    plain = compare(a, b)  # (s,s) (s,s) (c,s) (c,s) (s,c): A only 1, B only 2
+    assert (plain["a_only"], plain["b_only"]) == (1, 2) and plain["b_success"] == pytest.approx(4 / 5)
+    tops = compare(a, b, below_tops=True)  # B's trials 1 and 2 flew over: (s,s) (s,c) (c,c) (c,s) (s,c)
+    assert (tops["a_only"], tops["b_only"]) == (2, 1) and tops["b_success"] == pytest.approx(2 / 5)
+    assert tops["a_success"] == pytest.approx(3 / 5) and tops["below_tops"] and not plain["below_tops"]
+    pooled = compare_pooled([(a, b), (a, b)], below_tops=True)["pooled"]
+    assert (pooled["a_only"], pooled["b_only"], pooled["n"]) == (4, 2, 10)
+    main([a, b, "--below-tops"])
+    out = capsys.readouterr().out
+    assert "below the obstacles' tops only" in out and "A only 2, B only 1" in out
+    _write(tmp_path / "c", "bare", [s, s, c, c, s])  # an output without the metric
+    with pytest.raises(ValueError, match="no metrics.flew_over"):
+        compare(a, f"{tmp_path / 'c'}:bare", below_tops=True)

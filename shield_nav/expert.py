@@ -24,7 +24,8 @@ rest numpy over envs):
    feedforward acceleration ``v_r d(v t)/ds`` (centripetal and along-track). The command is
    ``a = a_ff + k_v (v_ref - v)``, turned into thrust and attitude with the tilt and thrust limits of
    :class:`shield_nav.tracking.TrackingConfig` overridden by ``max_tilt_deg``. Yaw follows the chord, so the
-   camera looks along the path.
+   camera looks along the path. ``drag_ff`` > 0 adds that share of the vehicle model's drag at the current velocity
+   (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward").
 
 The expert is stateless: its command depends only on the current state, so it labels any state a student reaches
 (DAgger). It reads the map, so it is **privileged**: an upper bound, not a competitor.
@@ -112,6 +113,10 @@ class ExpertConfig:
     """Weight of the feedforward acceleration (0: pure velocity tracking)."""
     ff_window: int = 6
     """Samples over which the feedforward d(v t)/ds is differenced (a one-sample difference is noise)."""
+    drag_ff: float = 0.0
+    """Weight of the drag feedforward: the vehicle model's nominal drag at the current velocity (rotor drag in the
+    body frame and parasitic drag, ``vehicle.airframe``) added to the commanded acceleration, so the velocity loop
+    does not settle ``drag / k_v`` short of the reference (0: off)."""
     max_tilt_deg: float = 48.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50)."""
     visibility: str = "map"
@@ -140,7 +145,7 @@ class ExpertConfig:
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
-                     "narrow_weight"):  # fmt: skip
+                     "narrow_weight", "drag_ff"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -231,6 +236,18 @@ VISIBILITIES = ("map", "camera")
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def drag_accel(vel: np.ndarray, R_wb: np.ndarray, airframe: Any) -> np.ndarray:
+    """The nominal drag acceleration (N, 3) [m/s^2] of the vehicle model at world velocities (N, 3).
+
+    Rotor drag ``-R diag(d) R^T v`` (``airframe.linear_drag``, body frame) plus parasitic drag
+    ``-rho C_d A |v| v / (2 m)`` (docs/vehicle.md).
+    """
+    v_b = np.einsum("nji,nj->ni", R_wb, vel)  # R^T v
+    a = -np.einsum("nij,nj->ni", R_wb, np.asarray(airframe.linear_drag) * v_b)
+    k = 0.5 * airframe.air_density * airframe.quadratic_drag_area / airframe.mass
+    return a - k * np.linalg.norm(vel, axis=1, keepdims=True) * vel
 
 
 def speed_profile(kappa: np.ndarray, cap: np.ndarray, lat_accel: float, brake_accel: float, ds: float,
@@ -477,6 +494,8 @@ class PlannerController:
         vt1 = v_prof[rows, k_ff, None] * tan[rows, k_ff]
         a_ff = ec.ff_gain * v_r[:, None] * (vt1 - vt0) / (np.maximum(k_ff - k_ref, 1) * ec.ds)[:, None]
         a = a_ff + ec.k_v * (v_ref - vel)
+        if ec.drag_ff > 0:
+            a = a - ec.drag_ff * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
         psi = np.arctan2(chord[:, 1], chord[:, 0])
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a}

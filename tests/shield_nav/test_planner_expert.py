@@ -7,8 +7,16 @@ import pytest
 
 from envs.config import ConfigError, load_config
 from envs.navigation import NavigationEnv
+from envs.vehicle.config import AirframeConfig
 from shield_nav.baselines import BaselineConfig, PlannerExpert, make_baseline
-from shield_nav.expert import ExpertConfig, PlannerController, speed_profile, visible_samples, windowed_curvature
+from shield_nav.expert import (
+    ExpertConfig,
+    PlannerController,
+    drag_accel,
+    speed_profile,
+    visible_samples,
+    windowed_curvature,
+)
 
 SMALL = {"scenes.indices": [0, 1], "episode.initial_speed_fraction": [0.3, 0.5]}
 
@@ -91,6 +99,58 @@ def test_command_at_rest_on_a_straight_path_accelerates_along_it():
     np.testing.assert_allclose(np.linalg.norm(v_ref, axis=1), ctrl.last["speed"][:, 0], rtol=1e-9)
 
 
+def test_drag_accel_by_hand():
+    """Rotor drag -R diag(d) R^T v plus parasitic drag -rho CdA |v| v / (2 m), for a level and a pitched body."""
+    af = AirframeConfig(linear_drag=(0.3, 0.3, 0.1), quadratic_drag_area=0.012, air_density=1.225, mass=1.0)
+    level = np.eye(3)
+    pitched = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # body z along world x
+    vel = np.array([[7.0, 0.0, 0.0], [0.0, -2.0, 0.0], [1.0, 0.0, 0.0]])
+    a = drag_accel(vel, np.stack((level, level, pitched)), af)
+    q = 0.5 * 1.225 * 0.012  # per unit mass
+    expect = np.array(
+        [
+            [-(0.3 * 7.0 + q * 7.0 * 7.0), 0.0, 0.0],  # 2.46015 m/s^2 against the motion
+            [0.0, 0.3 * 2.0 + q * 2.0 * 2.0, 0.0],
+            [-(0.1 * 1.0 + q * 1.0), 0.0, 0.0],  # flying along body z meets the z coefficient
+        ]
+    )
+    np.testing.assert_allclose(a, expect, rtol=1e-12, atol=1e-12)
+
+
+def test_drag_feedforward_adds_the_models_drag_to_the_command():
+    """drag_ff w: the commanded acceleration is the plain one minus w times the nominal drag at the current state."""
+    env = _env(n=4, speed=7.0)
+    env.vehicles.vel_w[:] = np.array([6.0, 0.5, 0.0])
+    plain = PlannerController(BaselineConfig())
+    plain.commands(env)
+    comp = PlannerController(BaselineConfig(expert=ExpertConfig(drag_ff=0.5)))
+    comp.commands(env)
+    drag = drag_accel(env.vehicles.vel_w, env.vehicles.R_wb, env.cfg.vehicle.airframe)
+    assert np.all(drag[:, 0] < -1.5)  # ~0.3 * 6 + 0.4: against the motion
+    np.testing.assert_allclose(comp.last["a"], plain.last["a"] - 0.5 * drag, rtol=1e-12, atol=1e-12)
+
+
+def test_drag_feedforward_closes_the_velocity_loops_steady_error():
+    """Real physics: on the open training scenes, the velocity loop a = k_v (v_ref - v) settles about drag / k_v
+    short of its reference; with the drag feedforward the vehicle holds the reference."""
+    errs = {}
+    for w in (0.0, 1.0):
+        env = _env(n=4, speed=5.0)
+        ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(drag_ff=w, ff_gain=0.0)))
+        short = []
+        for step in range(250):
+            cmd = ctrl.commands(env)
+            if step >= 150:  # after the start transient
+                v_ref = ctrl.last["v_ref"]
+                along = np.einsum("ni,ni->n", env.vehicles.vel_w, v_ref) / np.linalg.norm(v_ref, axis=1)
+                short.append(np.linalg.norm(v_ref, axis=1) - along)
+            env.step(np.zeros((4, 4)), commands=cmd)
+        errs[w] = float(np.mean(short))
+    # Drag at 5 m/s: 0.3 * 5 + 0.5 * 1.225 * 0.012 * 25 = 1.68 m/s^2, i.e. ~0.42 m/s short at k_v = 4.
+    assert errs[0.0] > 0.25
+    assert abs(errs[1.0]) < 0.5 * errs[0.0]
+
+
 def test_planner_is_a_baseline_row_and_a_dagger_expert():
     env = _env(n=4)
     assert isinstance(make_baseline("expert", BaselineConfig()), PlannerController)
@@ -100,7 +160,8 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 
 @pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
                                             ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0),
-                                            ("narrow_clearance", -0.1), ("narrow_weight", -1.0)])  # fmt: skip
+                                            ("narrow_clearance", -0.1), ("narrow_weight", -1.0),
+                                            ("drag_ff", -0.5)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

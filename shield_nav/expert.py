@@ -82,6 +82,8 @@ class ExpertConfig:
     closer than ``field_radius - smooth_slack`` to an obstacle, the raw sample is kept."""
     smooth_slack: float = 0.15
     """Clearance the smoothing may give up below ``field_radius`` [m]."""
+    smooth_passes: int = 1
+    """How many times the moving average (with its clearance check) is applied to the traced path."""
     curv_window: int = 3
     """Samples on either side over which the turning angle is measured (curvature = angle / arc length)."""
     lat_accel: float = 12.0
@@ -149,6 +151,7 @@ class ExpertConfig:
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
+        require(self.smooth_passes >= 1, f"{prefix}smooth_passes", f"must be >= 1, got {self.smooth_passes}")
         require(self.curv_window >= 1, f"{prefix}curv_window", f"must be >= 1, got {self.curv_window}")
         require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
                 "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip
@@ -418,7 +421,8 @@ class PlannerController:
                       ec.clearance_gain, ec.d_pref, ec.goal_switch, ec.momentum, (ef[0], *ef[1:7]), p, q, path,
                       clear)  # fmt: skip
         if ec.smooth_window > 1:
-            path, clear = self._smooth(env, path, clear)
+            for _ in range(ec.smooth_passes):
+                path, clear = self._smooth(env, path, clear)
         return path, clear
 
     def _smooth(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

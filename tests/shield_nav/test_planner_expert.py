@@ -83,6 +83,33 @@ def test_paths_descend_the_inflated_geodesic_field_and_keep_clearance():
     assert np.all(speed[:, :-1] ** 2 <= speed[:, 1:] ** 2 + 2 * ec.brake_accel * ec.ds + 1e-9)
 
 
+def test_smoothing_passes_repeat_the_moving_average_by_hand():
+    """smooth_passes 2: each sample is the 7-sample average of the once-smoothed path (or keeps its once-smoothed
+    value where the average would come closer than field_radius - smooth_slack to an obstacle)."""
+    env = _env()
+    once = PlannerController(BaselineConfig()).plan(env)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_passes=2)))
+    twice = ctrl.plan(env)
+    p1, p2 = once["path"], twice["path"]
+    np.testing.assert_allclose(p2[:, 0], env.local_pos)
+    floor = ctrl.ec.field_radius - ctrl.ec.smooth_slack
+    moved = 0
+    for k in range(3, p1.shape[1] - 3):
+        avg = p1[:, k - 3 : k + 4].mean(axis=1)
+        took = np.isclose(p2[:, k], avg).all(axis=1)
+        kept = np.isclose(p2[:, k], p1[:, k]).all(axis=1)
+        assert (took | kept).all()
+        moved += int((took & ~kept).sum())
+        # A sample that took the average keeps the floor of clearance; the reported clearance is the env's ESDF.
+        ids = env.scene_id_buf
+        d = env.field_stack.esdf(ids, p2[:, k])
+        np.testing.assert_allclose(twice["clear"][:, k], d)
+        assert np.all(d[took & ~kept] >= floor - 1e-9)
+    assert moved > 0  # the second pass changes the path
+    # The second pass straightens the path: its curvature is lower on average.
+    assert twice["kappa"].mean() < once["kappa"].mean()
+
+
 def test_command_at_rest_on_a_straight_path_accelerates_along_it():
     """With v = 0 and no feedforward, a = k_v v_ref: the thrust vector is g e3 + k_v v_r chord (before limits)."""
     env = _env(n=4, speed=3.0)
@@ -161,7 +188,7 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 @pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
                                             ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0),
                                             ("narrow_clearance", -0.1), ("narrow_weight", -1.0),
-                                            ("drag_ff", -0.5)])  # fmt: skip
+                                            ("drag_ff", -0.5), ("smooth_passes", 0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

@@ -1,0 +1,156 @@
+"""Where does the privileged expert's speed go? The gap between the target speed and the flown one, split by cause.
+
+``python -m shield_nav.speed_budget [--scenes train_shapes:8-15] [--scene-seed default] [--speed 7] [--steps 600]
+[--num-envs 32] [--set KEY=VALUE ...] [--json]``
+
+flies the planning expert (:mod:`shield_nav.expert`, rendering off, envs reset as their episodes end) and, at every
+control step of every env, reads three speeds at the tracker's reference sample (``round(|v| lag_s / ds)`` along the
+planned path):
+
+* ``curvature_cap``: ``min(target, sqrt(lat_accel / kappa))``, what the bends of the path allow;
+* ``profile``: the speed profile there (the curvature caps, any clearance or camera cap, and the backward braking
+  pass): what the expert asks for;
+* ``vehicle``: ``|v|``, what the vehicle flies.
+
+The means over all steps (the start from hover included, as ``mean_speed`` of the evaluation includes it) split the
+target's shortfall into ``bends = target - curvature_cap``, ``braking = curvature_cap - profile`` (the braking pass
+and the other caps) and ``tracking = profile - vehicle`` (the velocity loop's lag and drag error, the starts, the
+re-acceleration out of bends). ``--set`` takes :class:`shield_nav.expert.ExpertConfig` keys (``--set drag_ff=1``),
+so a variant's budget is read beside the default's in a few seconds, before an evaluation of its success.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any
+
+import numpy as np
+
+from envs.config import ConfigError, load_config
+from envs.scenes import FAMILIES, make_scene
+from shield_nav.evaluation.config import EvalError, parse_scenes
+
+
+def reference_speeds(last: dict[str, np.ndarray], speed: np.ndarray, target: np.ndarray, ec: Any) -> np.ndarray:
+    """(N, 3) curvature cap, profile and vehicle speed at each env's reference sample.
+
+    Args:
+        last: :attr:`shield_nav.expert.PlannerController.last` after a ``commands`` call (``kappa``, ``speed``).
+        speed: |v| (N,) of the vehicles at that call.
+        target: Target speeds (N,).
+        ec: The expert's :class:`shield_nav.expert.ExpertConfig`.
+    """
+    prof, kappa = last["speed"], last["kappa"]
+    rows = np.arange(len(speed))
+    k = np.clip(np.round(speed * ec.lag_s / ec.ds).astype(int), 0, prof.shape[1] - 3)  # the tracker's reference
+    cap = np.minimum(target, np.sqrt(ec.lat_accel / np.maximum(kappa[rows, k], 1e-9)))
+    return np.stack((cap, prof[rows, k], speed), axis=1)
+
+
+def budget(samples: np.ndarray, target: float) -> dict[str, float]:
+    """Means of (M, 3) reference speeds and the shortfall split ``bends``, ``braking``, ``tracking`` [m/s]."""
+    cap, prof, veh = (float(x) for x in samples.mean(axis=0))
+    return {
+        "target": target,
+        "curvature_cap": cap,
+        "profile": prof,
+        "vehicle": veh,
+        "bends": target - cap,
+        "braking": cap - prof,
+        "tracking": prof - veh,
+        "profile_below_085": float((samples[:, 1] < 0.85 * target).mean()),
+    }
+
+
+def measure(family: str, indices: list[int], scene_seed: int | None, speed: float, steps: int, num_envs: int,
+            seed: int = 0, expert: dict[str, Any] | None = None) -> dict:  # fmt: skip
+    """Fly the expert ``steps`` control steps in ``num_envs`` envs over the scenes; the speed budget of all steps."""
+    from envs.navigation import NavigationEnv
+    from shield_nav.baselines import BaselineConfig
+    from shield_nav.expert import PlannerController
+
+    cfg = load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in (expert or {}).items()})
+    over = {"scenes.family": family, "scenes.indices": list(indices), "render_depth": False,
+            "curriculum.enabled": False, "episode.target_speeds": [float(speed)], "episode.speed_range": [],
+            "episode.timeout_factor": 1.5, "seed": seed}  # fmt: skip
+    if scene_seed is not None:
+        over["scenes.seed"] = scene_seed
+    env = NavigationEnv(num_envs=num_envs, **over)
+    env.reset(seed=seed)
+    planner = PlannerController(cfg)
+    samples = []
+    for step in range(steps):
+        v = np.linalg.norm(env.vehicles.vel_w, axis=1)
+        cmd = planner.commands(env)
+        samples.append(reference_speeds(planner.last, v, env.target_speed_buf, planner.ec))
+        env.step(np.zeros((num_envs, 4)), commands=cmd)
+        if (step + 1) % 200 == 0:
+            print(f"[speed_budget] {step + 1} of {steps} steps", file=sys.stderr, flush=True)
+    out = budget(np.concatenate(samples), float(speed))
+    if not all(math.isfinite(x) for x in out.values()):
+        raise FloatingPointError(f"speed_budget: a non-finite mean in {out}")
+    return {"family": family, "scenes": list(indices), "scene_seed": scene_seed, "steps": steps,
+            "num_envs": num_envs, "expert": dict(expert or {}), **out}  # fmt: skip
+
+
+def _set(text: str) -> tuple[str, Any]:
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"--set takes KEY=VALUE, got {text!r}")
+    import yaml
+
+    return key, yaml.safe_load(value)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point."""
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.speed_budget", description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", default="train_shapes:8-15", help="FAMILY or FAMILY:INDICES, as eval.py "
+                    "(default train_shapes:8-15, the validation scenes)")  # fmt: skip
+    ap.add_argument("--scene-seed", type=lambda t: None if t == "default" else int(t), default=None,
+                    help="scene generator seed (default: the family's own)")  # fmt: skip
+    ap.add_argument("--speed", type=float, default=7.0, help="target speed [m/s] (default 7)")
+    ap.add_argument("--steps", type=int, default=600, help="control steps of 10 ms (default 600)")
+    ap.add_argument("--num-envs", type=int, default=32, help="parallel envs (default 32)")
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--set", dest="sets", type=_set, action="append", default=[], metavar="KEY=VALUE",
+                    help="an ExpertConfig key (repeat --set for several)")  # fmt: skip
+    ap.add_argument("--json", action="store_true", help="print one JSON line instead of a table")
+    args = ap.parse_args(argv)
+    try:
+        sel = parse_scenes(args.scenes)
+        family, indices = sel.family, sel.indices or list(range(FAMILIES[sel.family].size))
+    except EvalError as err:
+        ap.error(str(err))
+    if args.steps < 1 or args.num_envs < 1 or not (args.speed > 0 and math.isfinite(args.speed)):
+        ap.error(f"need --steps >= 1, --num-envs >= 1 and a finite --speed > 0, got {args.steps}, {args.num_envs}, "
+                 f"{args.speed}")  # fmt: skip
+    expert = dict(args.sets)
+    try:  # a bad expert key or value, scene or seed is named before any flight
+        from shield_nav.baselines import BaselineConfig
+
+        load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in expert.items()})
+        for i in indices:
+            make_scene(family, i, args.scene_seed)
+    except (ConfigError, ValueError) as err:
+        ap.error(str(err))
+    res = measure(family, indices, args.scene_seed, args.speed, args.steps, args.num_envs, args.seed, expert)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(f"expert's speed budget, {family}:{','.join(map(str, indices))}, {args.speed:g} m/s, "
+              f"{args.num_envs} envs x {args.steps} steps{'' if not expert else f', {expert}'}")  # fmt: skip
+        head = ("target", "curvature cap", "profile", "vehicle", "lost to bends", "to braking and other caps",
+                "to tracking")  # fmt: skip
+        print("| " + " | ".join(head) + " |")
+        print("|" + "---:|" * len(head))
+        print(" | ".join(["", *(f"{res[k]:.2f}" for k in ("target", "curvature_cap", "profile", "vehicle", "bends",
+                                                          "braking", "tracking")), ""]).strip())  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,67 @@
+"""The expert's speed budget (shield_nav.speed_budget) against hand computations and the real flight."""
+
+import math
+
+import numpy as np
+import pytest
+
+from shield_nav.expert import ExpertConfig
+from shield_nav.speed_budget import budget, main, measure, reference_speeds
+
+
+def test_reference_speeds_read_the_trackers_sample_by_hand():
+    """k = round(|v| lag_s / ds): 0 at rest, round(7 * 0.08 / 0.35) = round(1.6) = 2 at 7 m/s."""
+    ec = ExpertConfig(lag_s=0.08, ds=0.35, lat_accel=12.0)
+    kappa = np.zeros((2, 10))
+    kappa[0, 0] = 0.5  # sqrt(12 / 0.5) = 4.899 m/s, below the target
+    kappa[1, 2] = 0.1  # sqrt(120) = 10.95 m/s, above it: the target caps
+    kappa[1, 1] = 5.0  # not the reference sample: ignored
+    prof = np.tile(np.arange(10.0), (2, 1)) * 0.5
+    out = reference_speeds({"kappa": kappa, "speed": prof}, np.array([0.0, 7.0]), np.array([7.0, 7.0]), ec)
+    np.testing.assert_allclose(out, [[math.sqrt(24.0), 0.0, 0.0], [7.0, 1.0, 7.0]], rtol=1e-12)
+
+
+def test_budget_splits_the_shortfall_by_hand():
+    res = budget(np.array([[6.0, 5.0, 4.0], [4.0, 4.0, 2.0], [5.0, 6.0, 3.0]]), 7.0)
+    assert res["curvature_cap"] == pytest.approx(5.0) and res["profile"] == pytest.approx(5.0)
+    assert res["vehicle"] == pytest.approx(3.0)
+    assert res["bends"] == pytest.approx(2.0) and res["braking"] == pytest.approx(0.0)
+    assert res["tracking"] == pytest.approx(2.0)
+    assert res["profile_below_085"] == pytest.approx(2 / 3)  # 5.0 and 4.0 are below 5.95; 6.0 is not
+    assert res["bends"] + res["braking"] + res["tracking"] == pytest.approx(7.0 - res["vehicle"])
+
+
+def test_flown_budget_shows_the_drag_feedforward_in_the_tracking_loss():
+    """Real flights on two open training scenes at 5 m/s: the drag feedforward (docs/expert.md) leaves the path and
+    its profile as they were but closes part of the tracking loss."""
+    kw = {"family": "train_shapes", "indices": [0, 1], "scene_seed": None, "speed": 5.0, "steps": 300,
+          "num_envs": 4, "seed": 3}  # fmt: skip
+    plain = measure(**kw)
+    comp = measure(**kw, expert={"drag_ff": 1.0})
+    for r in (plain, comp):
+        assert r["target"] == 5.0
+        assert 0.0 < r["vehicle"] < r["profile"] <= r["curvature_cap"] + 1e-9 <= 5.0 + 1e-9
+    assert comp["expert"] == {"drag_ff": 1.0}
+    assert comp["tracking"] < plain["tracking"] - 0.1
+    assert comp["vehicle"] > plain["vehicle"] + 0.1
+
+
+def test_cli_names_a_bad_expert_key_or_value_before_flying(capsys):
+    for arg, name in (("drag_fff=1", "drag_fff"), ("drag_ff=-1", "drag_ff"), ("drag_ff", "KEY=VALUE")):
+        with pytest.raises(SystemExit):
+            main(["--set", arg, "--steps", "1"])
+        assert name in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--scenes", "nowhere"])
+    assert "nowhere" in capsys.readouterr().err
+
+
+def test_cli_prints_a_table_and_json(capsys):
+    assert main(["--scenes", "train_shapes:0", "--speed", "3", "--steps", "5", "--num-envs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "| target | curvature cap |" in out and "| 3.00 |" in out
+    assert main(["--scenes", "train_shapes:0", "--steps", "5", "--num-envs", "2", "--json", "--set", "k_v=5"]) == 0
+    import json
+
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["expert"] == {"k_v": 5} and res["steps"] == 5 and res["num_envs"] == 2

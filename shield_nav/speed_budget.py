@@ -38,14 +38,15 @@ def reference_speeds(last: dict[str, np.ndarray], speed: np.ndarray, target: np.
     """(N, 3) curvature cap, profile and vehicle speed at each env's reference sample.
 
     Args:
-        last: :attr:`shield_nav.expert.PlannerController.last` after a ``commands`` call (``kappa``, ``speed``).
+        last: :attr:`shield_nav.expert.PlannerController.last` after a ``commands`` call (``kappa``, ``speed`` and
+            the tracker's reference sample ``k_ref``).
         speed: |v| (N,) of the vehicles at that call.
         target: Target speeds (N,).
         ec: The expert's :class:`shield_nav.expert.ExpertConfig`.
     """
     prof, kappa = last["speed"], last["kappa"]
     rows = np.arange(len(speed))
-    k = np.clip(np.round(speed * ec.lag_s / ec.ds).astype(int), 0, prof.shape[1] - 3)  # the tracker's reference
+    k = last["k_ref"]
     cap = np.minimum(target, np.sqrt(ec.lat_accel / np.maximum(kappa[rows, k], 1e-9)))
     return np.stack((cap, prof[rows, k], speed), axis=1)
 

@@ -233,6 +233,7 @@ def test_tangent_tracker_follows_the_path_direction_by_hand():
     last = ctrl.last
     pos, vel = env.local_pos, env.vehicles.vel_w
     k = np.clip(np.round(np.linalg.norm(vel, axis=1) * ec.lag_s / ec.ds).astype(int), 0, last["path"].shape[1] - 3)
+    np.testing.assert_array_equal(last["k_ref"], k)
     rows = np.arange(4)
     p0, p1 = last["path"][rows, k], last["path"][rows, k + 2]
     expect = last["speed"][rows, k, None] * (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)

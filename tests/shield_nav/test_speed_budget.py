@@ -10,14 +10,15 @@ from shield_nav.speed_budget import budget, main, measure, reference_speeds
 
 
 def test_reference_speeds_read_the_trackers_sample_by_hand():
-    """k = round(|v| lag_s / ds): 0 at rest, round(7 * 0.08 / 0.35) = round(1.6) = 2 at 7 m/s."""
-    ec = ExpertConfig(lag_s=0.08, ds=0.35, lat_accel=12.0)
+    """At the tracker's reference samples k_ref = (0, 2): curvature cap, profile and the vehicle's speed."""
+    ec = ExpertConfig(lat_accel=12.0)
     kappa = np.zeros((2, 10))
     kappa[0, 0] = 0.5  # sqrt(12 / 0.5) = 4.899 m/s, below the target
     kappa[1, 2] = 0.1  # sqrt(120) = 10.95 m/s, above it: the target caps
     kappa[1, 1] = 5.0  # not the reference sample: ignored
     prof = np.tile(np.arange(10.0), (2, 1)) * 0.5
-    out = reference_speeds({"kappa": kappa, "speed": prof}, np.array([0.0, 7.0]), np.array([7.0, 7.0]), ec)
+    last = {"kappa": kappa, "speed": prof, "k_ref": np.array([0, 2])}
+    out = reference_speeds(last, np.array([0.0, 7.0]), np.array([7.0, 7.0]), ec)
     np.testing.assert_allclose(out, [[math.sqrt(24.0), 0.0, 0.0], [7.0, 1.0, 7.0]], rtol=1e-12)
 
 

@@ -324,6 +324,25 @@ def visible_samples(path: np.ndarray, cam_pos: np.ndarray, R_wc: np.ndarray, cam
     return seen
 
 
+def flight_env(family: str, indices: list[int], scene_seed: int | None, speed: float, num_envs: int,
+               seed: int = 0) -> Any:  # fmt: skip
+    """A reset :class:`envs.navigation.NavigationEnv` for flying the expert in diagnostics.
+
+    Rendering and the curriculum off, one target speed, the evaluation's time limit (1.5 x); ``scene_seed`` None
+    keeps the family's own scenes.
+    """
+    from envs.navigation import NavigationEnv
+
+    over = {"scenes.family": family, "scenes.indices": list(indices), "render_depth": False,
+            "curriculum.enabled": False, "episode.target_speeds": [float(speed)], "episode.speed_range": [],
+            "episode.timeout_factor": 1.5, "seed": seed}  # fmt: skip
+    if scene_seed is not None:
+        over["scenes.seed"] = scene_seed
+    env = NavigationEnv(num_envs=num_envs, **over)
+    env.reset(seed=seed)
+    return env
+
+
 class PlannerController:
     """The planning expert as an evaluation controller (row ``expert``; see the module docstring)."""
 

@@ -38,7 +38,7 @@ import numpy as np
 from envs.camera.model import camera_poses
 from envs.scenes import FAMILIES, make_scene
 from shield_nav.evaluation.config import EvalError, parse_scenes
-from shield_nav.expert import PlannerController, visible_samples
+from shield_nav.expert import PlannerController, flight_env, visible_samples
 
 
 def seen_prefix(path: np.ndarray, seen: np.ndarray, in_fov: np.ndarray, near_m: float = 0.0,
@@ -75,13 +75,7 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
 
     scenes = {}
     for scene in indices:  # one env per scene, so every scene gets the same number of samples
-        over = {"scenes.family": family, "scenes.indices": [scene], "render_depth": False,
-                "curriculum.enabled": False, "episode.target_speeds": [float(speed)], "episode.speed_range": [],
-                "episode.timeout_factor": 1.5, "seed": seed}  # fmt: skip
-        if scene_seed is not None:
-            over["scenes.seed"] = scene_seed
-        env = NavigationEnv(num_envs=num_envs, **over)
-        env.reset(seed=seed)
+        env = flight_env(family, [scene], scene_seed, speed, num_envs, seed)
         planner = PlannerController(BaselineConfig())
         ec = planner.ec
         ids = np.zeros(num_envs, dtype=np.int64)

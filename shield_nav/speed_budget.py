@@ -69,18 +69,11 @@ def budget(samples: np.ndarray, target: float) -> dict[str, float]:
 def measure(family: str, indices: list[int], scene_seed: int | None, speed: float, steps: int, num_envs: int,
             seed: int = 0, expert: dict[str, Any] | None = None) -> dict:  # fmt: skip
     """Fly the expert ``steps`` control steps in ``num_envs`` envs over the scenes; the speed budget of all steps."""
-    from envs.navigation import NavigationEnv
     from shield_nav.baselines import BaselineConfig
-    from shield_nav.expert import PlannerController
+    from shield_nav.expert import PlannerController, flight_env
 
     cfg = load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in (expert or {}).items()})
-    over = {"scenes.family": family, "scenes.indices": list(indices), "render_depth": False,
-            "curriculum.enabled": False, "episode.target_speeds": [float(speed)], "episode.speed_range": [],
-            "episode.timeout_factor": 1.5, "seed": seed}  # fmt: skip
-    if scene_seed is not None:
-        over["scenes.seed"] = scene_seed
-    env = NavigationEnv(num_envs=num_envs, **over)
-    env.reset(seed=seed)
+    env = flight_env(family, indices, scene_seed, speed, num_envs, seed)
     planner = PlannerController(cfg)
     samples = []
     for step in range(steps):

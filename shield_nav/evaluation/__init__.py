@@ -81,6 +81,7 @@ from shield_nav.evaluation.rollout import (
     nav_config,
     run_unit,
     sample_trial,
+    scene_seed,
     trial_seed,
     unit_key,
 )
@@ -141,6 +142,7 @@ __all__ = [
     "resolve_rows",
     "run_unit",
     "sample_trial",
+    "scene_seed",
     "summarize",
     "trajectory_metrics",
     "trial_seed",

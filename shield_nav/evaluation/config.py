@@ -100,6 +100,9 @@ class SceneSelection:
     """Scene family (ablation, benchmark, dynamic, forest; train and train_shapes are allowed but were trained on)."""
     indices: list[int] = field(default_factory=list)
     """Scene indices; empty means the whole family."""
+    seed: int | None = None
+    """Scene generator seed (None: the family's own, which for ``ablation`` and ``benchmark`` are the held-out
+    test scenes). A validation config names its own here; ``--scenes`` and ``env_overrides`` leave it in place."""
 
 
 @dataclass
@@ -162,6 +165,9 @@ class EvalConfig:
         require(len(self.configurations) >= 1, f"{prefix}configurations", "need at least one configuration")
         for o in self.env_overrides:
             require("=" in o, f"{prefix}env_overrides", f"{o!r} is not of the form a.b=value")
+            if self.scenes.seed is not None and o.split("=", 1)[0].strip() == "scenes.seed":
+                require(False, f"{prefix}env_overrides", f"{o!r} sets the scene seed that scenes.seed "
+                        f"({self.scenes.seed}) already sets; set it in one place")  # fmt: skip
 
     @property
     def scene_indices(self) -> list[int]:
@@ -244,7 +250,7 @@ def config_from_args(args: Any) -> tuple[EvalConfig, tuple[str, ...]]:
     if args.trials is not None:
         cfg.trials_per_scene = args.trials
     if args.scenes:
-        cfg.scenes = parse_scenes(args.scenes)
+        cfg.scenes = dataclasses.replace(parse_scenes(args.scenes), seed=cfg.scenes.seed)
     if getattr(args, "configurations", None):
         cfg.configurations = [c.strip() for c in args.configurations.split(",") if c.strip()]
     if args.workers is not None:

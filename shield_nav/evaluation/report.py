@@ -21,8 +21,10 @@ def _num(x: float | None, fmt: str = ".2f") -> str:
 def _header_lines(prep: Prepared, summary: dict) -> list[str]:
     cfg = prep.cfg
     n_sc = len(cfg.scene_indices)
+    seed = summary.get("scene_seed")
+    at = f" at scene seed {seed}" if seed is not None else " (the family's own scenes)"
     lines = [
-        f"{cfg.title or cfg.name}: family `{cfg.scenes.family}` scenes {cfg.scene_indices}, "
+        f"{cfg.title or cfg.name}: family `{cfg.scenes.family}`{at}, scenes {cfg.scene_indices}, "
         f"{cfg.trials_per_scene} trials per scene and speed ({n_sc * cfg.trials_per_scene} per cell), seed {cfg.seed}.",
         "Observation noise and domain randomization: " + ("ON (training ranges)." if cfg.randomization else "off."),
         # The title is free text; the overrides as run (a CLI --set can change e.g. the scene seed a title names).

@@ -93,6 +93,8 @@ def nav_config(
         "episode.target_speeds": [float(speed)],
         "episode.speed_range": [],
     }
+    if cfg.scenes.seed is not None:
+        forced["scenes.seed"] = cfg.scenes.seed
     extra = dict(o.split("=", 1) for o in cfg.env_overrides)
     try:
         base = load_config(NavConfig, overrides=policy_env) if policy_env else None
@@ -107,13 +109,19 @@ def nav_config(
 
 
 def flown_scene(cfg: EvalConfig, family: str, index: int) -> Any:
-    """The scene a unit of ``cfg`` flies: ``family``/``index`` with the seed of its env overrides, if any.
+    """The scene a unit of ``cfg`` flies: ``family``/``index`` with the eval's scene seed, if any.
 
-    Trial sampling, figures, videos and the collision analysis use it, so they show the scene that was flown (an
-    eval with ``scenes.seed`` in ``env_overrides``), not the family's default.
+    That seed is ``scenes.seed`` of the eval config or, equally, ``scenes.seed`` in its ``env_overrides``. Trial
+    sampling, figures, videos and the collision analysis use it, so they show the scene that was flown, not the
+    family's default.
     """
     seed = nav_config(cfg, family, index, cfg.speeds[0], 1).scenes.seed
     return make_scene(family, index, seed)
+
+
+def scene_seed(cfg: EvalConfig) -> int | None:
+    """The scene generator seed ``cfg``'s units fly (None: the family's own)."""
+    return nav_config(cfg, cfg.scenes.family, cfg.scene_indices[0], cfg.speeds[0], 1).scenes.seed
 
 
 _POLICY_CACHE: dict[str, LoadedPolicy] = {}

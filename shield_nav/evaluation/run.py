@@ -33,7 +33,15 @@ from shield_nav.evaluation.config import (
 from shield_nav.evaluation.metrics import aggregate
 from shield_nav.evaluation.policies import PolicyInfo, check_layout, load_policy, load_teacher
 from shield_nav.evaluation.report import _header_lines, csv_table, detail_table, latex_table, paper_table
-from shield_nav.evaluation.rollout import Prepared, UnitSpec, _worker_init, nav_config, run_unit, unit_key
+from shield_nav.evaluation.rollout import (
+    Prepared,
+    UnitSpec,
+    _worker_init,
+    nav_config,
+    run_unit,
+    scene_seed,
+    unit_key,
+)
 
 
 def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prepared:
@@ -290,6 +298,7 @@ def summarize(prep: Prepared, unit_results: list[dict]) -> dict:
     return {
         "name": prep.cfg.name,
         "family": prep.cfg.scenes.family,
+        "scene_seed": scene_seed(prep.cfg),
         "scenes": prep.cfg.scene_indices,
         "speeds": prep.cfg.speeds,
         "trials_per_scene": prep.cfg.trials_per_scene,

@@ -507,3 +507,28 @@ def test_row_shield_overrides_change_that_rows_shield_only(tmp_path):
         E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.lag_s=-1.0"))
     with pytest.raises(E.EvalError, match="has shield_overrides but no shield"):
         E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield=false"))
+
+
+def test_scene_seed_of_the_config_survives_env_override_and_scenes_flags():
+    """validation_benchmark's scene seed is part of its scene selection: replacing env_overrides (a common --set) or
+    narrowing the scenes with --scenes keeps it, so a validation run never falls back to the test scenes."""
+    import argparse
+
+    path = os.path.join(ROOT, "configs", "eval", "validation_benchmark.yaml")
+    cfg = E.load_eval_config(path, ["env_overrides=[episode.timeout_factor=1.5,render_depth=false]"])
+    assert cfg.scenes.seed == 1150000
+    assert E.nav_config(cfg, "benchmark", 15, 5.0, 1).scenes.seed == 1150000
+    assert E.scene_seed(cfg) == 1150000
+    args = argparse.Namespace(config=path, set=[], checkpoint=[], speeds=None, trials=None, scenes="benchmark:15",
+                              configurations="expert", workers=None, seed=None)  # fmt: skip
+    cfg2, _ = E.config_from_args(args)
+    assert cfg2.scenes.indices == [15] and cfg2.scenes.seed == 1150000
+    # the family's own scenes (the held-out ones) when no seed is given
+    bench = E.load_eval_config(os.path.join(ROOT, "configs", "eval", "benchmark.yaml"))
+    assert bench.scenes.seed is None and E.scene_seed(bench) is None
+
+
+def test_scene_seed_set_twice_is_an_error_naming_both_keys():
+    path = os.path.join(ROOT, "configs", "eval", "validation_benchmark.yaml")
+    with pytest.raises(E.ConfigError, match=r"env_overrides.*scenes\.seed=7.*scenes\.seed \(1150000\)"):
+        E.load_eval_config(path, ["env_overrides=[scenes.seed=7]"])

@@ -140,7 +140,7 @@ def write_figures(prep: Any, summary: dict, results: list[dict], out_dir: str) -
             continue
         speed = max(u["speed"] for u in here)
         here = [u for u in here if u["speed"] == speed]
-        scene = make_scene(cfg.scenes.family, idx, nav.scenes.seed)  # the eval's scene seed (scenes.seed or env_overrides), if any
+        scene = make_scene(cfg.scenes.family, idx, nav.scenes.seed)  # the eval's scene seed, if any
         fields = build_fields(scene, resolution=nav.scenes.field_resolution,
                               vehicle_radius=nav.vehicle.airframe.collision_radius)  # fmt: skip
         p = os.path.join(out_dir, f"trajectories_{cfg.scenes.family}-{idx:02d}_v{speed:g}.png")

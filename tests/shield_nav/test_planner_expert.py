@@ -83,6 +83,42 @@ def test_paths_descend_the_inflated_geodesic_field_and_keep_clearance():
     assert np.all(speed[:, :-1] ** 2 <= speed[:, 1:] ** 2 + 2 * ec.brake_accel * ec.ds + 1e-9)
 
 
+def test_band_moves_samples_to_the_neighbours_midpoint_by_hand_in_free_space():
+    """One band iteration with band_step 1 far from every obstacle (no push): each inner sample is the midpoint of its
+    neighbours before the iteration; a straight, evenly spaced path stays put; the end samples never move."""
+    env = _env(n=1)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=1, band_step=1.0, band_clearance=0.0)))
+    ctrl.fallback = np.zeros(1, dtype=bool)
+    zig = np.array([[0.0, 0.0, 0.0], [1.0, 0.4, 0.0], [2.0, -0.2, 0.0], [3.0, 0.6, 0.1], [4.0, 0.0, 0.0]])
+    path = env.local_pos[:, None, :] + zig[None]
+    clear = env.field_stack.esdf(np.repeat(env.scene_id_buf, 5), path.reshape(-1, 3)).reshape(1, 5)
+    out, d = ctrl._band(env, path, clear)
+    expect = path.copy()
+    expect[0, 1:-1] = 0.5 * (path[0, :-2] + path[0, 2:])
+    np.testing.assert_allclose(out, expect, atol=1e-12)
+    np.testing.assert_allclose(d, env.field_stack.esdf(np.repeat(env.scene_id_buf, 5), out.reshape(-1, 3))[None])
+    line = env.local_pos[:, None, :] + np.arange(5)[None, :, None] * np.array([0.3, 0.1, 0.0])
+    np.testing.assert_allclose(ctrl._band(env, line, clear)[0], line, atol=1e-12)
+
+
+def test_band_straightens_paths_and_keeps_its_floor_of_clearance():
+    """On real paths: first and last samples stay, no sample ends closer to an obstacle than min(band_clearance,
+    its clearance before the band), the reported clearance is the env's ESDF, and the curvature falls."""
+    env = _env()
+    plain = PlannerController(BaselineConfig())
+    before = plain.plan(env)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=10)))
+    after = ctrl.plan(env)
+    p0, p1 = before["path"], after["path"]
+    np.testing.assert_allclose(p1[:, [0, -1]], p0[:, [0, -1]])
+    assert not np.allclose(p1, p0)
+    floor = np.where(ctrl.fallback, env.cfg.vehicle.airframe.collision_radius + ctrl.ec.smooth_slack, 0.5)[:, None]
+    assert np.all(after["clear"] >= np.minimum(floor, before["clear"]) - 1e-9)
+    d = env.field_stack.esdf(np.repeat(env.scene_id_buf, p1.shape[1]), p1.reshape(-1, 3)).reshape(p1.shape[:2])
+    np.testing.assert_allclose(after["clear"], d)
+    assert after["kappa"].mean() < 0.9 * before["kappa"].mean()
+
+
 def test_smoothing_passes_repeat_the_moving_average_by_hand():
     """smooth_passes 2: each sample is the 7-sample average of the once-smoothed path (or keeps its once-smoothed
     value where the average would come closer than field_radius - smooth_slack to an obstacle)."""
@@ -188,7 +224,8 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 @pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
                                             ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0),
                                             ("narrow_clearance", -0.1), ("narrow_weight", -1.0),
-                                            ("drag_ff", -0.5), ("smooth_passes", 0)])  # fmt: skip
+                                            ("drag_ff", -0.5), ("smooth_passes", 0),
+                                            ("band_iters", -1), ("band_step", 0.0), ("band_clearance", -0.1)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

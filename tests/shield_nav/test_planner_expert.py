@@ -224,8 +224,8 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
 @pytest.mark.parametrize(("key", "value"), [("horizon", -1.0), ("curv_window", 0), ("max_tilt_deg", 70.0),
                                             ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0),
                                             ("narrow_clearance", -0.1), ("narrow_weight", -1.0),
-                                            ("drag_ff", -0.5), ("smooth_passes", 0),
-                                            ("band_iters", -1), ("band_step", 0.0), ("band_clearance", -0.1)])  # fmt: skip
+                                            ("drag_ff", -0.5), ("smooth_passes", 0), ("band_iters", -1),
+                                            ("band_step", 0.0), ("band_clearance", -0.1)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

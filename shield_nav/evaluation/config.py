@@ -165,9 +165,10 @@ class EvalConfig:
         require(len(self.configurations) >= 1, f"{prefix}configurations", "need at least one configuration")
         for o in self.env_overrides:
             require("=" in o, f"{prefix}env_overrides", f"{o!r} is not of the form a.b=value")
-            if self.scenes.seed is not None and o.split("=", 1)[0].strip() == "scenes.seed":
-                require(False, f"{prefix}env_overrides", f"{o!r} sets the scene seed that scenes.seed "
-                        f"({self.scenes.seed}) already sets; set it in one place")  # fmt: skip
+            key, _, value = o.partition("=")
+            if self.scenes.seed is not None and key.strip() == "scenes.seed":
+                require(yaml.safe_load(value) == self.scenes.seed, f"{prefix}env_overrides", f"{o!r} contradicts "
+                        f"scenes.seed ({self.scenes.seed}); set the scene seed in one place")  # fmt: skip
 
     @property
     def scene_indices(self) -> list[int]:

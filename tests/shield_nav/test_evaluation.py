@@ -528,7 +528,12 @@ def test_scene_seed_of_the_config_survives_env_override_and_scenes_flags():
     assert bench.scenes.seed is None and E.scene_seed(bench) is None
 
 
-def test_scene_seed_set_twice_is_an_error_naming_both_keys():
+def test_scene_seed_set_twice_must_agree_and_an_error_names_both_keys():
     path = os.path.join(ROOT, "configs", "eval", "validation_benchmark.yaml")
     with pytest.raises(E.ConfigError, match=r"env_overrides.*scenes\.seed=7.*scenes\.seed \(1150000\)"):
         E.load_eval_config(path, ["env_overrides=[scenes.seed=7]"])
+    same = E.load_eval_config(path, ["env_overrides=[episode.timeout_factor=3.0,scenes.seed=1150000]"])
+    assert E.scene_seed(same) == 1150000
+    # another draw of the same generator: set scenes.seed itself
+    other = E.load_eval_config(path, ["scenes.seed=1160000"])
+    assert E.nav_config(other, "benchmark", 3, 9.0, 1).scenes.seed == 1160000

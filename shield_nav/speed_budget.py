@@ -17,6 +17,12 @@ target's shortfall into ``bends = target - curvature_cap``, ``braking = curvatur
 and the other caps) and ``tracking = profile - vehicle`` (the velocity loop's lag and drag error, the starts, the
 re-acceleration out of bends). ``--set`` takes :class:`shield_nav.expert.ExpertConfig` keys (``--set drag_ff=1``),
 so a variant's budget is read beside the default's in a few seconds, before an evaluation of its success.
+
+It also measures how far the vehicle strays from what it planned: ``deviation_mean`` and ``deviation_p95``, the
+distance from the vehicle to the path the expert planned ``DEVIATION_DELAY_S`` (0.3 s) earlier in the same
+episode, and ``clear_p05``, the 5th percentile of that path's own clearance (ESDF) at its sample nearest the
+vehicle. Where the deviation comes near the clearance beyond the vehicle radius, the tracker, not the path, sets
+how fast the expert can fly safely.
 """
 
 from __future__ import annotations
@@ -51,6 +57,25 @@ def reference_speeds(last: dict[str, np.ndarray], speed: np.ndarray, target: np.
     return np.stack((cap, prof[rows, k], speed), axis=1)
 
 
+DEVIATION_DELAY_S = 0.3
+"""How long before a step the path is planned that the step's deviation is measured against [s]."""
+
+
+def polyline_distance(points: np.ndarray, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (N,) from each point (N, 3) to its polyline (N, K+1, 3), and a vertex index (N,).
+
+    The index is the nearest segment's end closer to the foot of the perpendicular.
+    """
+    a, b = paths[:, :-1], paths[:, 1:]
+    ab = b - a
+    t = np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
+    t = np.clip(t, 0.0, 1.0)
+    d = np.linalg.norm(a + t[..., None] * ab - points[:, None], axis=2)
+    seg = d.argmin(axis=1)
+    rows = np.arange(len(points))
+    return d[rows, seg], seg + (t[rows, seg] > 0.5)
+
+
 def budget(samples: np.ndarray, target: float) -> dict[str, float]:
     """Means of (M, 3) reference speeds and the shortfall split ``bends``, ``braking``, ``tracking`` [m/s]."""
     cap, prof, veh = (float(x) for x in samples.mean(axis=0))
@@ -75,16 +100,32 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
     cfg = load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in (expert or {}).items()})
     env = flight_env(family, indices, scene_seed, speed, num_envs, seed)
     planner = PlannerController(cfg)
-    samples = []
+    delay = max(1, round(DEVIATION_DELAY_S / env.cfg.vehicle.command_dt))
+    samples, history, dev, clear = [], [], [], []
     for step in range(steps):
         v = np.linalg.norm(env.vehicles.vel_w, axis=1)
         cmd = planner.commands(env)
         samples.append(reference_speeds(planner.last, v, env.target_speed_buf, planner.ec))
+        history.append((planner.last["path"], planner.last["clear"]))
+        if len(history) > delay:
+            old_path, old_clear = history.pop(0)
+            same = env.episode_length_buf >= delay  # planned in this episode
+            if same.any():
+                d, k = polyline_distance(env.local_pos[same], old_path[same])
+                dev.append(d)
+                clear.append(old_clear[same][np.arange(int(same.sum())), k])
         env.step(np.zeros((num_envs, 4)), commands=cmd)
         if (step + 1) % 200 == 0:
             print(f"[speed_budget] {step + 1} of {steps} steps", file=sys.stderr, flush=True)
     out = budget(np.concatenate(samples), float(speed))
-    if not all(math.isfinite(x) for x in out.values()):
+    if dev:  # None (JSON null) when no step is DEVIATION_DELAY_S into its episode
+        dev_all, clear_all = np.concatenate(dev), np.concatenate(clear)
+        stray = {"deviation_mean": float(dev_all.mean()), "deviation_p95": float(np.percentile(dev_all, 95)),
+                 "clear_p05": float(np.percentile(clear_all, 5))}  # fmt: skip
+    else:
+        stray = dict.fromkeys(("deviation_mean", "deviation_p95", "clear_p05"))
+    out.update(stray)
+    if not all(x is None or math.isfinite(x) for x in out.values()):
         raise FloatingPointError(f"speed_budget: a non-finite mean in {out}")
     return {"family": family, "scenes": list(indices), "scene_seed": scene_seed, "steps": steps,
             "num_envs": num_envs, "expert": dict(expert or {}), **out}  # fmt: skip
@@ -138,11 +179,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"expert's speed budget, {family}:{','.join(map(str, indices))}, {args.speed:g} m/s, "
               f"{args.num_envs} envs x {args.steps} steps{'' if not expert else f', {expert}'}")  # fmt: skip
         head = ("target", "curvature cap", "profile", "vehicle", "lost to bends", "to braking and other caps",
-                "to tracking")  # fmt: skip
+                "to tracking", "deviation mean / p95 [m]", "path clearance p05 [m]")  # fmt: skip
         print("| " + " | ".join(head) + " |")
         print("|" + "---:|" * len(head))
-        print(" | ".join(["", *(f"{res[k]:.2f}" for k in ("target", "curvature_cap", "profile", "vehicle", "bends",
-                                                          "braking", "tracking")), ""]).strip())  # fmt: skip
+        cells = [f"{res[k]:.2f}" for k in ("target", "curvature_cap", "profile", "vehicle", "bends", "braking",
+                                           "tracking")]  # fmt: skip
+        if res["deviation_mean"] is None:
+            cells += ["-", "-"]
+        else:
+            cells += [f"{res['deviation_mean']:.2f} / {res['deviation_p95']:.2f}", f"{res['clear_p05']:.2f}"]
+        print(" | ".join(["", *cells, ""]).strip())
     return 0
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shield_nav.expert import ExpertConfig
-from shield_nav.speed_budget import budget, main, measure, reference_speeds
+from shield_nav.speed_budget import budget, main, measure, polyline_distance, reference_speeds
 
 
 def test_reference_speeds_read_the_trackers_sample_by_hand():
@@ -20,6 +20,16 @@ def test_reference_speeds_read_the_trackers_sample_by_hand():
     last = {"kappa": kappa, "speed": prof, "k_ref": np.array([0, 2])}
     out = reference_speeds(last, np.array([0.0, 7.0]), np.array([7.0, 7.0]), ec)
     np.testing.assert_allclose(out, [[math.sqrt(24.0), 0.0, 0.0], [7.0, 1.0, 7.0]], rtol=1e-12)
+
+
+def test_polyline_distance_by_hand():
+    """An L-shaped path (0,0)-(2,0)-(2,2) at z 1: a point beside the first leg, one past the corner, one beyond the
+    end; the distance and the nearest vertex by hand."""
+    path = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0], [2.0, 1.0, 1.0], [2.0, 2.0, 1.0]])
+    pts = np.array([[0.6, 0.3, 1.0], [2.5, -0.5, 1.0], [2.0, 3.0, 1.4]])
+    d, k = polyline_distance(pts, np.repeat(path[None], 3, axis=0))
+    np.testing.assert_allclose(d, [0.3, math.sqrt(0.5), math.sqrt(1.0 + 0.16)], rtol=1e-12)
+    np.testing.assert_array_equal(k, [1, 2, 4])
 
 
 def test_budget_splits_the_shortfall_by_hand():
@@ -47,6 +57,17 @@ def test_flown_budget_shows_the_drag_feedforward_in_the_tracking_loss():
     assert comp["vehicle"] > plain["vehicle"] + 0.1
 
 
+def test_flown_deviation_from_the_earlier_plan_grows_with_speed():
+    """Real flights: the vehicle strays further from the path it planned 0.3 s before at 7 m/s than at 3 m/s, by
+    centimetres, and the path's 5th-percentile clearance exceeds the vehicle radius (0.2 m)."""
+    kw = {"family": "train_shapes", "indices": [0, 1], "scene_seed": None, "steps": 300, "num_envs": 4, "seed": 3}
+    slow, fast = measure(speed=3.0, **kw), measure(speed=7.0, **kw)
+    for r in (slow, fast):
+        assert 0.0 < r["deviation_mean"] < r["deviation_p95"] < 0.5
+        assert r["clear_p05"] > 0.2
+    assert fast["deviation_p95"] > slow["deviation_p95"] + 0.02
+
+
 def test_cli_names_a_bad_expert_key_or_value_before_flying(capsys):
     for arg, name in (("drag_fff=1", "drag_fff"), ("drag_ff=-1", "drag_ff"), ("drag_ff", "KEY=VALUE")):
         with pytest.raises(SystemExit):
@@ -66,3 +87,5 @@ def test_cli_prints_a_table_and_json(capsys):
 
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["expert"] == {"k_v": 5} and res["steps"] == 5 and res["num_envs"] == 2
+    # 5 steps are shorter than the 0.3 s the deviation looks back: null, not NaN
+    assert res["deviation_mean"] is None and res["deviation_p95"] is None and res["clear_p05"] is None

@@ -115,8 +115,7 @@ def flown_scene(cfg: EvalConfig, family: str, index: int) -> Any:
     sampling, figures, videos and the collision analysis use it, so they show the scene that was flown, not the
     family's default.
     """
-    seed = nav_config(cfg, family, index, cfg.speeds[0], 1).scenes.seed
-    return make_scene(family, index, seed)
+    return make_scene(family, index, scene_seed(cfg))
 
 
 def scene_seed(cfg: EvalConfig) -> int | None:

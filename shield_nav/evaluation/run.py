@@ -145,6 +145,36 @@ def _identity(prep: Prepared) -> dict:
     return {"config": d, "checkpoint_sha256": {k: v.sha256 for k, v in prep.policies.items()}}
 
 
+def _plain(x: Any) -> Any:
+    """``x`` as the manifest's JSON holds it."""
+    return json.loads(json.dumps(x, sort_keys=True, default=_json_default))
+
+
+def _added_default_keys(old: Any, new: Any, default: Any, path: str = "") -> list[str] | None:
+    """Keys that ``new`` has and ``old`` lacks, each at its default value; None when the two differ otherwise.
+
+    A folder written before a config field existed resumes under a config that leaves that field at its default
+    (new fields default to the behaviour before them); any other difference is another run.
+    """
+    if not (isinstance(old, dict) and isinstance(new, dict)):
+        return [] if old == new else None
+    if set(old) - set(new):
+        return None
+    added: list[str] = []
+    for key, value in new.items():
+        dflt = default.get(key) if isinstance(default, dict) else None
+        if key not in old:
+            if value != dflt:
+                return None
+            added.append(path + key)
+            continue
+        sub = _added_default_keys(old[key], value, dflt, f"{path}{key}.")
+        if sub is None:
+            return None
+        added += sub
+    return added
+
+
 def _write_json(path: str, data: Any) -> None:
     """Atomic write (tmp + rename): a crash never leaves a half-written file that resume would trust."""
     tmp = f"{path}.tmp{os.getpid()}"
@@ -170,7 +200,13 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
     if os.path.exists(man_path):
         with open(man_path) as f:
             old = json.load(f)
-        if old.get("identity_sha256") != digest:
+        added = None
+        if old.get("identity_sha256") != digest and old.get("checkpoint_sha256") == ident["checkpoint_sha256"]:
+            added = _added_default_keys(old.get("config"), _plain(ident["config"]), _plain(to_dict(EvalConfig())))
+            if added:
+                print(f"[eval] resuming {out_dir!r}, written before these config keys existed (all at their "
+                      f"defaults now): {', '.join(added)}", file=sys.stderr)  # fmt: skip
+        if old.get("identity_sha256") != digest and not added:
             raise EvalError(
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
                 "the same command. Use another --out or delete the folder."

@@ -326,6 +326,37 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
         E.evaluate(tiny_cfg("seed=5"), out1, progress=False)
 
 
+def test_resume_of_a_folder_written_before_a_config_key_existed(tmp_path, monkeypatch, capsys):
+    """A folder whose manifest lacks config keys added since resumes while those keys sit at their defaults (the
+    units are not re-flown, the keys are named); a non-default value there, or a key the config no longer has, is
+    another run."""
+    out = str(tmp_path / "old")
+    E.evaluate(tiny_cfg(), out, progress=False)
+    man_path = os.path.join(out, "manifest.json")
+    with open(man_path) as f:
+        man = json.load(f)
+    # What a folder written before scenes.seed and baselines.expert.band_iters existed holds.
+    del man["config"]["scenes"]["seed"], man["config"]["baselines"]["expert"]["band_iters"]
+    man["identity_sha256"] = "0" * 64
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    import shield_nav.evaluation.run as run_module
+
+    calls = []
+    real = E.run_unit
+    monkeypatch.setattr(run_module, "run_unit", lambda spec: calls.append(spec.key) or real(spec))
+    E.evaluate(tiny_cfg(), out, progress=False)
+    assert calls == []
+    assert "baselines.expert.band_iters, scenes.seed" in capsys.readouterr().err
+    with pytest.raises(E.EvalError, match="different run"):
+        E.evaluate(tiny_cfg("baselines.expert.band_iters=3"), out, progress=False)
+    man["config"]["no_longer_a_key"] = 1
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    with pytest.raises(E.EvalError, match="different run"):
+        E.evaluate(tiny_cfg(), out, progress=False)
+
+
 def test_eval_cli_subprocess(tmp_path):
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(

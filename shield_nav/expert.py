@@ -27,8 +27,11 @@ rest numpy over envs):
    camera looks along the path. ``drag_ff`` > 0 adds that share of the vehicle model's drag at the current velocity
    (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward").
 
-The expert is stateless: its command depends only on the current state, so it labels any state a student reaches
-(DAgger). It reads the map, so it is **privileged**: an upper bound, not a competitor.
+With ``commit_dist`` 0 the expert is stateless: its command depends only on the current state, so it labels any
+state a student reaches (DAgger). With route hysteresis (``commit_dist`` > 0) it also remembers each env's last path;
+it is called once per env step in evaluation and in DAgger's labelling alike, and an env whose episode starts again
+(or a second call without a step between) gets the fresh trace. It reads the map, so it is **privileged**: an upper
+bound, not a competitor.
 """
 
 from __future__ import annotations
@@ -95,6 +98,21 @@ class ExpertConfig:
     band_clearance: float = 0.5
     """Clearance floor of the band for paths on the inflated field [m]; paths on the narrow field keep the vehicle
     radius + ``smooth_slack``."""
+    commit_dist: float = 0.0
+    """Route hysteresis (0: off) [m]. The expert remembers each env's last path. Each step it also builds a
+    *committed* path: from the vehicle onto the remembered path (merging over ``commit_blend``), along it for
+    ``commit_dist`` metres beyond the vehicle, then down the field again from there (:func:`resample_ahead`). It flies
+    the committed path instead of the fresh trace when the vehicle is within ``commit_max_dev`` of the remembered
+    path, the committed path's clearance keeps the fresh one's floor (its smallest clearance, or the smoothing floor
+    if that is lower), and it is at most ``commit_slack`` longer (arc length plus the geodesic distance left at its
+    end). Near the ridge between two ways round an obstacle the fresh trace flips from one to the other between
+    steps; the committed path keeps the way already begun until ``commit_dist`` ahead."""
+    commit_max_dev: float = 0.6
+    """Farthest the vehicle may be from the remembered path for the committed path to be considered [m]."""
+    commit_blend: float = 1.5
+    """Over how many metres the committed path merges from the vehicle onto the remembered path [m]."""
+    commit_slack: float = 1.0
+    """How much longer than the fresh trace the committed path may be [m]."""
     curv_window: int = 3
     """Samples on either side over which the turning angle is measured (curvature = angle / arc length)."""
     lat_accel: float = 12.0
@@ -158,7 +176,8 @@ class ExpertConfig:
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
-                     "narrow_weight", "drag_ff"):  # fmt: skip
+                     "narrow_weight", "drag_ff", "commit_dist", "commit_max_dev", "commit_blend",
+                     "commit_slack"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -166,6 +185,9 @@ class ExpertConfig:
         require(0 < self.band_step <= 1, f"{prefix}band_step", f"must be in (0, 1], got {self.band_step}")
         require(self.band_clearance >= 0, f"{prefix}band_clearance", f"must be >= 0, got {self.band_clearance}")
         require(self.smooth_passes >= 1, f"{prefix}smooth_passes", f"must be >= 1, got {self.smooth_passes}")
+        longest = self.horizon - 2 * self.ds
+        require(self.commit_dist < longest, f"{prefix}commit_dist",
+                f"must be shorter than horizon - 2 ds ({longest:g} m), got {self.commit_dist}")  # fmt: skip
         require(self.curv_window >= 1, f"{prefix}curv_window", f"must be >= 1, got {self.curv_window}")
         require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
                 "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip
@@ -265,6 +287,49 @@ def drag_accel(vel: np.ndarray, R_wb: np.ndarray, airframe: Any) -> np.ndarray:
     a = -np.einsum("nij,nj->ni", R_wb, np.asarray(airframe.linear_drag) * v_b)
     k = 0.5 * airframe.air_density * airframe.quadratic_drag_area / airframe.mass
     return a - k * np.linalg.norm(vel, axis=1, keepdims=True) * vel
+
+
+def polyline_distance(points: np.ndarray, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (N,) from each point (N, 3) to its polyline (N, K+1, 3), and a vertex index (N,).
+
+    The index is the nearest segment's end closer to the foot of the perpendicular.
+    """
+    a, b = paths[:, :-1], paths[:, 1:]
+    ab = b - a
+    t = np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
+    t = np.clip(t, 0.0, 1.0)
+    d = np.linalg.norm(a + t[..., None] * ab - points[:, None], axis=2)
+    seg = d.argmin(axis=1)
+    rows = np.arange(len(points))
+    return d[rows, seg], seg + (t[rows, seg] > 0.5)
+
+
+def resample_ahead(points: np.ndarray, paths: np.ndarray, m: int, ds: float, blend: int) -> tuple:
+    """Paths (N, m+1, 3) that start at the points (N, 3) and merge onto their polylines (N, K+1, 3).
+
+    Sample k is the polyline's point ``k ds`` beyond the foot of the perpendicular from the point, plus the offset
+    point - foot times ``max(0, 1 - k / blend)``: sample 0 is the point itself, and the offset is removed
+    linearly over ``blend`` samples. Returns the paths, the distances (N,) to the polylines, and whether (N,) each
+    polyline reaches ``m ds`` beyond its foot.
+    """
+    a, ab = paths[:, :-1], np.diff(paths, axis=1)
+    seglen2 = np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
+    t = np.clip(np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / seglen2, 0.0, 1.0)
+    feet = a + t[..., None] * ab
+    d = np.linalg.norm(feet - points[:, None], axis=2)
+    n = len(points)
+    rows, seg = np.arange(n), d.argmin(axis=1)
+    seglen = np.sqrt(seglen2)
+    cum = np.concatenate((np.zeros((n, 1)), np.cumsum(seglen, axis=1)), axis=1)
+    s = cum[rows, seg, None] + t[rows, seg, None] * seglen[rows, seg, None] + ds * np.arange(m + 1)  # (N, m+1)
+    reach = s[:, -1] <= cum[:, -1] + 1e-9
+    idx = np.clip((cum[:, None, :] <= s[..., None]).sum(axis=2) - 1, 0, seglen.shape[1] - 1)
+    r = rows[:, None]
+    u = np.clip((s - cum[r, idx]) / np.maximum(seglen[r, idx], 1e-9), 0.0, 1.0)
+    out = a[r, idx] + u[..., None] * ab[r, idx]
+    w = np.maximum(0.0, 1.0 - np.arange(m + 1) / max(blend, 1))
+    out += w[None, :, None] * (points - feet[rows, seg])[:, None, :]
+    return out, d[rows, seg], reach
 
 
 def speed_profile(kappa: np.ndarray, cap: np.ndarray, lat_accel: float, brake_accel: float, ds: float,
@@ -370,9 +435,13 @@ class PlannerController:
         self.last: dict[str, np.ndarray] = {}
         self.fallback = np.zeros(0, dtype=bool)
         """(N,) bool of the last trace: envs that descended the narrow field (the inflated one was flat)."""
+        self.committed = np.zeros(0, dtype=bool)
+        """(N,) bool of the last trace: envs that fly the committed path (``commit_dist``)."""
+        self._memory: tuple | None = None
 
     def reset(self, env: Any) -> None:
-        """Nothing to reset (stateless); the planning fields are built on first use and kept per env."""
+        """Forget the remembered paths (``commit_dist``); the planning fields are built on first use and kept."""
+        self._memory = None
 
     # ------------------------------------------------------------------------------------------------ fields
     def _fields(self, env: Any) -> tuple[Any, Any, Any]:
@@ -448,17 +517,80 @@ class PlannerController:
             index[fallback] = qf[0]
             q = (index, *qf[1:])
         ef = env.field_stack.kernel_fields(ids)
+        fields = ((ef[0], *ef[1:7]), p, q)
+        raw, raw_clear = self._descend(env, x, k_steps, fallback, fields)
+        path, clear = self._refine(env, raw, raw_clear)
+        if ec.commit_dist > 0:
+            path, clear = self._commit(env, x, k_steps, fields, path, clear)
+        return path, clear
+
+    def _descend(self, env: Any, x: np.ndarray, k_steps: int, fallback: np.ndarray, fields: tuple) -> tuple:
+        """Raw paths (N, k_steps+1, 3) from ``x`` (N, 3) down the fields (``_trace_kernel``), and their ESDF."""
+        ec = self.ec
+        n = len(x)
         path = np.empty((n, k_steps + 1, 3))
         clear = np.empty((n, k_steps + 1))
-        _trace_kernel(x, np.ascontiguousarray(env.goal_buf, dtype=np.float64), fallback, k_steps, h, ec.ds,
-                      ec.clearance_gain, ec.d_pref, ec.goal_switch, ec.momentum, (ef[0], *ef[1:7]), p, q, path,
-                      clear)  # fmt: skip
+        _trace_kernel(np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(env.goal_buf, dtype=np.float64),
+                      fallback, k_steps, ec.fd_step, ec.ds, ec.clearance_gain, ec.d_pref, ec.goal_switch, ec.momentum,
+                      *fields, path, clear)  # fmt: skip
+        return path, clear
+
+    def _refine(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The moving average (``smooth_passes`` times) and the elastic band, as configured."""
+        ec = self.ec
         if ec.smooth_window > 1:
             for _ in range(ec.smooth_passes):
                 path, clear = self._smooth(env, path, clear)
         if ec.band_iters > 0:
             path, clear = self._band(env, path, clear)
         return path, clear
+
+    def _commit(self, env: Any, x: np.ndarray, k_steps: int, fields: tuple, path: np.ndarray,
+                clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """Route hysteresis (``commit_dist``): the committed path where it qualifies, else the fresh trace.
+
+        Returns the path flown (remembered for the next step) and its clearance.
+        """
+        ec = self.ec
+        n = env.num_envs
+        ep = np.array(env.episode_length_buf, copy=True)
+        take = np.zeros(n, dtype=bool)
+        mem = self._memory
+        if mem is not None and mem[0] is env and mem[1].shape == path.shape:
+            prev, prev_ep = mem[1], mem[2]
+            m = max(1, int(round(ec.commit_dist / ec.ds)))
+            blend = max(1, int(round(ec.commit_blend / ec.ds)))
+            head, dev, reach = resample_ahead(x, prev, m, ec.ds, blend)  # head[:, 0] is the vehicle
+            ok = (ep > prev_ep) & (dev <= ec.commit_max_dev) & reach  # same episode, on the remembered path
+            if ok.any():
+                head = head[:, 1:]
+                tail, tail_clear = self._descend(env, head[:, -1], k_steps - m, self.fallback, fields)
+                tail, tail_clear = self._refine(env, tail, tail_clear)
+                ids = np.repeat(env.scene_id_buf, m)
+                head_clear = env.field_stack.esdf(ids, head.reshape(-1, 3)).reshape(n, m)
+                b_path = np.concatenate((x[:, None], head, tail[:, 1:]), axis=1)
+                b_cl = np.concatenate((clear[:, :1], head_clear, tail_clear[:, 1:]), axis=1)
+                r_vehicle = env.cfg.vehicle.airframe.collision_radius
+                floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.field_radius - ec.smooth_slack)
+                safe = b_cl.min(axis=1) >= np.minimum(clear.min(axis=1), floor) - 1e-9
+                cost_a, cost_b = self._route_cost(env, path), self._route_cost(env, b_path)
+                take = ok & safe & (cost_b <= cost_a + ec.commit_slack)
+                path = np.where(take[:, None, None], b_path, path)
+                clear = np.where(take[:, None], b_cl, clear)
+        self._memory = (env, path.copy(), ep)
+        self.committed = take
+        return path, clear
+
+    def _route_cost(self, env: Any, path: np.ndarray) -> np.ndarray:
+        """Arc length of paths (N, K+1, 3) plus the geodesic distance left at their ends, on each env's field."""
+        ids, anchor = env.scene_id_buf, env.anchor_buf
+        length = np.linalg.norm(np.diff(path, axis=1), axis=2).sum(axis=1)
+        end = path[:, -1]
+        left = self._phi(env, ids, anchor, end)
+        fb = self.fallback
+        if fb.any():
+            left[fb] = self._phi(env, ids[fb], anchor[fb], end[fb], own=False)
+        return length + left
 
     def _band(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Elastic band on the paths (``band_iters``); the first and last samples stay put."""

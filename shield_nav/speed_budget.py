@@ -38,6 +38,7 @@ import numpy as np
 from envs.config import ConfigError, load_config
 from envs.scenes import FAMILIES, make_scene
 from shield_nav.evaluation.config import EvalError, parse_scenes
+from shield_nav.expert import polyline_distance
 
 
 def reference_speeds(last: dict[str, np.ndarray], speed: np.ndarray, target: np.ndarray, ec: Any) -> np.ndarray:
@@ -59,21 +60,6 @@ def reference_speeds(last: dict[str, np.ndarray], speed: np.ndarray, target: np.
 
 DEVIATION_DELAY_S = 0.3
 """How long before a step the path is planned that the step's deviation is measured against [s]."""
-
-
-def polyline_distance(points: np.ndarray, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance (N,) from each point (N, 3) to its polyline (N, K+1, 3), and a vertex index (N,).
-
-    The index is the nearest segment's end closer to the foot of the perpendicular.
-    """
-    a, b = paths[:, :-1], paths[:, 1:]
-    ab = b - a
-    t = np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
-    t = np.clip(t, 0.0, 1.0)
-    d = np.linalg.norm(a + t[..., None] * ab - points[:, None], axis=2)
-    seg = d.argmin(axis=1)
-    rows = np.arange(len(points))
-    return d[rows, seg], seg + (t[rows, seg] > 0.5)
 
 
 def budget(samples: np.ndarray, target: float) -> dict[str, float]:

@@ -3,6 +3,7 @@
 A batch of envs on the ablation scenes (rendering off) is flown a few hundred steps by the planning expert; each
 control step's expert call (path trace, smoothing, speed profile, tracker) is timed, and so is the scripted oracle's
 on the same states. Reported: microseconds per env per label for both, and the env step without rendering, for scale.
+``--set KEY=VALUE`` (repeatable) times a variant of the expert (:class:`shield_nav.expert.ExpertConfig` keys).
 """
 
 from __future__ import annotations
@@ -11,10 +12,12 @@ import time
 
 import numpy as np
 
+from envs.config import ConfigError, load_config
 from envs.navigation import NavigationEnv
 from shield_nav.baselines import BaselineConfig, OracleConfig, OracleController
 from shield_nav.bench.common import emit, machine, parser
 from shield_nav.expert import PlannerController
+from shield_nav.speed_budget import _set
 
 
 def main(argv: list[str]) -> dict:
@@ -23,12 +26,19 @@ def main(argv: list[str]) -> dict:
     p.add_argument("--num-envs", type=int, default=50)
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--speed", type=float, default=7.0)
+    p.add_argument("--set", dest="sets", type=_set, action="append", default=[], metavar="KEY=VALUE",
+                   help="an ExpertConfig key of the timed expert (repeat --set for several)")  # fmt: skip
     args = p.parse_args(argv)
+    expert = dict(args.sets)
+    try:  # a bad key or value is named before any flight
+        cfg = load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in expert.items()})
+    except ConfigError as err:
+        p.error(str(err))
     env = NavigationEnv(num_envs=args.num_envs, **{
         "scenes.family": "ablation", "scenes.indices": list(range(8)), "render_depth": False,
         "curriculum.enabled": False, "episode.target_speeds": [args.speed], "episode.speed_range": []})  # fmt: skip
     env.reset(seed=0)
-    planner = PlannerController(BaselineConfig())
+    planner = PlannerController(cfg)
     oracle = OracleController(BaselineConfig(oracle=OracleConfig(episode_goal=True, field_radius=0.5)))
     planner.commands(env)
     oracle.commands(env)  # build the inflated fields outside the timing
@@ -50,6 +60,7 @@ def main(argv: list[str]) -> dict:
         "num_envs": n,
         "steps": args.steps,
         "speed": args.speed,
+        "expert": expert,
         "expert_us_per_label": round(1e6 * float(np.mean(t_exp)) / n, 2),
         "oracle_us_per_label": round(1e6 * float(np.mean(t_orc)) / n, 2),
         "env_step_no_render_us_per_env": round(1e6 * float(np.mean(t_env)) / n, 2),

@@ -13,6 +13,7 @@ from shield_nav.expert import (
     ExpertConfig,
     PlannerController,
     drag_accel,
+    resample_ahead,
     speed_profile,
     visible_samples,
     windowed_curvature,
@@ -117,6 +118,73 @@ def test_band_straightens_paths_and_keeps_its_floor_of_clearance():
     d = env.field_stack.esdf(np.repeat(env.scene_id_buf, p1.shape[1]), p1.reshape(-1, 3)).reshape(p1.shape[:2])
     np.testing.assert_allclose(after["clear"], d)
     assert after["kappa"].mean() < 0.9 * before["kappa"].mean()
+
+
+def test_resample_ahead_by_hand():
+    """A straight polyline along x and an L: samples k ds beyond the foot, the offset removed over ``blend``."""
+    line = np.stack((np.arange(11.0), np.zeros(11), np.zeros(11)), axis=1)[None]
+    out, d, reach = resample_ahead(np.array([[2.3, 0.4, 0.0]]), line, m=3, ds=0.5, blend=2)
+    np.testing.assert_allclose(out[0], [[2.3, 0.4, 0.0], [2.8, 0.2, 0.0], [3.3, 0.0, 0.0], [3.8, 0.0, 0.0]])
+    np.testing.assert_allclose(d, [0.4])
+    assert reach.tolist() == [True]
+    assert resample_ahead(np.array([[2.3, 0.4, 0.0]]), line, m=20, ds=0.5, blend=2)[2].tolist() == [False]
+    ell = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]])
+    out, d, reach = resample_ahead(np.array([[0.5, 0.0, 0.0]]), ell, m=3, ds=0.5, blend=1)
+    np.testing.assert_allclose(out[0], [[0.5, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.5, 0.0], [1.0, 1.0, 0.0]], atol=1e-12)
+    assert d.tolist() == [0.0] and reach.tolist() == [True]
+
+
+def _fly(ctrl, env, steps):
+    for _ in range(steps):
+        env.step(np.zeros((env.num_envs, 4)), commands=ctrl.commands(env))
+
+
+def test_committed_path_follows_the_remembered_one_then_descends_again():
+    """commit_dist 2 m (6 samples of 0.35 m, blend 1.5 m = 4 samples), gates wide open: after a step, an env that
+    commits flies the vehicle's position, then exactly the remembered path resampled ahead of it, then the tail; its
+    reported clearance is the ESDF and keeps the fresh trace's floor. The first call has nothing to remember."""
+    env = _env()
+    ec = ExpertConfig(commit_dist=2.0, commit_max_dev=10.0, commit_slack=100.0)
+    ctrl = PlannerController(BaselineConfig(expert=ec))
+    env.step(np.zeros((env.num_envs, 4)), commands=ctrl.commands(env))
+    assert not ctrl.committed.any()
+    env.step(np.zeros((env.num_envs, 4)), commands=ctrl.commands(env))
+    prev = ctrl.last["path"].copy()
+    fresh = PlannerController(BaselineConfig()).plan(env)
+    plan = ctrl.plan(env)
+    took = ctrl.committed
+    assert took.any()
+    head, _, _ = resample_ahead(env.local_pos, prev, 6, ec.ds, 4)
+    path = plan["path"]
+    np.testing.assert_allclose(path[:, 0], env.local_pos)
+    np.testing.assert_allclose(path[took, 1:7], head[took, 1:], atol=1e-12)
+    np.testing.assert_allclose(path[~took], fresh["path"][~took])
+    d = env.field_stack.esdf(np.repeat(env.scene_id_buf, path.shape[1]), path.reshape(-1, 3)).reshape(path.shape[:2])
+    np.testing.assert_allclose(plan["clear"], d, atol=1e-9)
+    floor = np.minimum(fresh["clear"].min(axis=1), ec.field_radius - ec.smooth_slack)
+    assert np.all(plan["clear"][took & ~ctrl.fallback].min(axis=1) >= floor[took & ~ctrl.fallback] - 1e-9)
+
+
+def test_committed_path_gates_reset_and_new_episodes():
+    """No commitment after reset(), in an env whose episode started again, or beyond commit_max_dev."""
+    env = _env()
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=2.0, commit_slack=100.0)))
+    _fly(ctrl, env, 3)
+    env.episode_length_buf[:2] = 0  # as if envs 0 and 1 had just been reset
+    ctrl.plan(env)
+    assert ctrl.committed.tolist() == [False, False] + [True] * 6
+    ctrl.plan(env)  # the same state again: no step since the last call
+    assert not ctrl.committed.any()
+    _fly(ctrl, env, 1)
+    ctrl.reset(env)
+    ctrl.plan(env)
+    assert not ctrl.committed.any()
+    tight = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=2.0, commit_slack=100.0,
+                                                                 commit_max_dev=0.0)))  # fmt: skip
+    tight.commands(env)
+    env.local_pos[:] += 0.05  # off the remembered path by 0.087 m: beyond a max deviation of 0
+    tight.plan(env)
+    assert not tight.committed.any()
 
 
 def test_smoothing_passes_repeat_the_moving_average_by_hand():
@@ -225,7 +293,9 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
                                             ("lag_s", -0.1), ("visibility", "lidar"), ("los_step", 0.0),
                                             ("narrow_clearance", -0.1), ("narrow_weight", -1.0),
                                             ("drag_ff", -0.5), ("smooth_passes", 0), ("band_iters", -1),
-                                            ("band_step", 0.0), ("band_clearance", -0.1)])  # fmt: skip
+                                            ("band_step", 0.0), ("band_clearance", -0.1), ("commit_dist", -1.0),
+                                            ("commit_dist", 13.5), ("commit_max_dev", -0.1),
+                                            ("commit_blend", -1.0), ("commit_slack", -0.5)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})
@@ -398,3 +468,19 @@ def test_trace_kernel_equals_a_numpy_trace_with_and_without_the_narrow_field():
     # Within goal_switch of the goal the path heads at the goal point: its last sample is nearer than its first.
     last, first = np.linalg.norm(path[:, -1] - goal, axis=1), np.linalg.norm(path[:, 0] - goal, axis=1)
     assert np.all(last < first)
+
+
+def test_expert_cost_bench_times_a_variant_and_names_a_bad_key(capsys):
+    """``python -m shield_nav.bench expert --set KEY=VALUE`` flies that variant (echoed in the JSON line); a bad key
+    is named before any flight."""
+    import json
+
+    from shield_nav.bench.expert import main
+
+    res = main(["--steps", "2", "--num-envs", "2", "--json", "--set", "commit_dist=1"])
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert line["expert"] == {"commit_dist": 1} == res["expert"]
+    assert line["num_envs"] == 2 and line["expert_us_per_label"] > 0
+    with pytest.raises(SystemExit):
+        main(["--steps", "2", "--set", "commit_dits=1"])
+    assert "commit_dits" in capsys.readouterr().err

@@ -61,8 +61,9 @@ class RslRlVecEnv(VecEnv):
     Args:
         env: The batched navigation env.
         device: Torch device for the returned tensors.
-        expert: Optional stateless expert ``expert(env) -> (N, 4)`` normalised actions, evaluated on every new
-            observation (after resets too) and returned as the ``expert`` group.
+        expert: Optional expert ``expert(env) -> (N, 4)`` normalised actions, evaluated once on every new
+            observation (after resets too) and returned as the ``expert`` group. It may remember the last call (the
+            planner's route hysteresis) but must not assume a step between two calls.
     """
 
     def __init__(

@@ -396,7 +396,12 @@ class OracleExpert:
 
 
 class PlannerExpert(OracleExpert):
-    """The planning expert (:class:`shield_nav.expert.PlannerController`) as a DAgger expert; stateless too."""
+    """The planning expert (:class:`shield_nav.expert.PlannerController`) as a DAgger expert.
+
+    Its route hysteresis (``expert.commit_dist``) remembers each env's last path: it is asked once per env step (the
+    adapter does), and an env whose episode restarts gets a fresh path, so the label still follows the state the
+    student reached.
+    """
 
     def __init__(self, cfg: BaselineConfig | None = None) -> None:  # noqa: D107
         self.controller = PlannerController(cfg or BaselineConfig())

@@ -98,7 +98,7 @@ class ExpertConfig:
     band_clearance: float = 0.5
     """Clearance floor of the band for paths on the inflated field [m]; paths on the narrow field keep the vehicle
     radius + ``smooth_slack``."""
-    commit_dist: float = 0.0
+    commit_dist: float = 1.0
     """Route hysteresis (0: off) [m]. The expert remembers each env's last path. Each step it also builds a
     *committed* path: from the vehicle onto the remembered path (merging over ``commit_blend``), along it for
     ``commit_dist`` metres beyond the vehicle, then down the field again from there (:func:`resample_ahead`). It flies
@@ -115,8 +115,8 @@ class ExpertConfig:
     """How much longer than the fresh trace the committed path may be [m]."""
     curv_window: int = 3
     """Samples on either side over which the turning angle is measured (curvature = angle / arc length)."""
-    lat_accel: float = 12.0
-    """Lateral acceleration the speed profile allows in turns [m/s^2]."""
+    lat_accel: float = 8.0
+    """Lateral acceleration the speed profile allows in turns [m/s^2] (12 before route hysteresis, 2026-11-27)."""
     brake_accel: float = 6.0
     """Deceleration the speed profile plans with [m/s^2]."""
     clear_gain: float = 0.0

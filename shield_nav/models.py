@@ -406,7 +406,7 @@ class ExpertTeacher(nn.Module):
         return obs[self.group].float()
 
     def reset(self, dones: torch.Tensor | None = None, hidden_state: HiddenState = None) -> None:
-        """Nothing to reset (the expert is stateless)."""
+        """Nothing to reset (the labels come in the observation; a scripted expert keeps its own state)."""
 
     def get_hidden_state(self) -> HiddenState:
         """None (no hidden state)."""

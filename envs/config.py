@@ -153,6 +153,28 @@ def validate(obj: Any, prefix: str = "") -> None:
         check(prefix)
 
 
+def stored_config(cls: type, raw: Mapping[str, Any]) -> dict:
+    """A config dict that an earlier version wrote (a checkpoint's, a run folder's), as that version meant it.
+
+    A field added later takes its default when absent, and a new field's default normally keeps the behaviour from
+    before it. Where it does not, its dataclass names it in ``PRE_FIELD_VALUES`` (a class-level dict of field name
+    to the value that reproduces the earlier behaviour), and an absent field takes that value instead. Walks nested
+    dataclass fields (e.g. ``runner.expert.params.expert``). Returns a new dict; ``raw`` is left as it is.
+    """
+    out = dict(raw)
+    inst = cls()
+    for f in dataclasses.fields(cls):
+        if f.name not in out:
+            pre = getattr(cls, "PRE_FIELD_VALUES", {})
+            if f.name in pre:
+                out[f.name] = pre[f.name]
+            continue
+        sub = getattr(inst, f.name)
+        if dataclasses.is_dataclass(sub) and isinstance(out[f.name], Mapping):
+            out[f.name] = stored_config(type(sub), out[f.name])
+    return out
+
+
 def to_dict(obj: Any) -> dict:
     """A plain (YAML/JSON-able) dict of a config dataclass."""
     return OmegaConf.to_container(OmegaConf.structured(obj), resolve=True)  # type: ignore[return-value]

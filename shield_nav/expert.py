@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numba
 import numpy as np
@@ -51,6 +51,10 @@ from shield_nav.tracking import accel_to_command
 @dataclass
 class ExpertConfig:
     """Parameters of :class:`PlannerController` (``baselines.expert`` in an eval or train config)."""
+
+    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"commit_dist": 0.0}
+    """Fields added with a default that changed behaviour, and the value a config written before them means
+    (:func:`envs.config.stored_config`): route hysteresis came on by default when it was added (2026-11-27)."""
 
     field_radius: float = 0.5
     """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""

@@ -25,7 +25,7 @@ import torch
 from rsl_rl.utils import resolve_callable
 from tensordict import TensorDict
 
-from envs.config import to_yaml
+from envs.config import stored_config, to_yaml
 from envs.navigation import STATE_DIM
 from shield_nav.compare_runs import read_events, write_csv
 from shield_nav.evaluation.policies import _sha256
@@ -41,7 +41,8 @@ def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainCo
     """
     ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     infos = read_checkpoint_infos(ckpt_path)
-    cfg = load_train_config(overrides=infos["config"]) if isinstance(infos.get("config"), dict) else None
+    stored = infos.get("config")
+    cfg = load_train_config(overrides=stored_config(TrainConfig, stored)) if isinstance(stored, dict) else None
     if cfg is None:
         raise ValueError(f"{ckpt_path}: the checkpoint carries no resolved config")
     meta = {"iter": int(ckpt["iter"]), **{k: v for k, v in infos.items() if k != "config"}}

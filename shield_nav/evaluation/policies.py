@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from envs.config import to_dict
+from envs.config import stored_config, to_dict
 from shield_nav.evaluation.config import EvalError
 
 
@@ -289,7 +289,7 @@ def load_teacher(path: str | os.PathLike, name: str = "teacher") -> LoadedTeache
     from rsl_rl.models import MLPModel
     from tensordict import TensorDict
 
-    from shield_nav.training import load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
+    from shield_nav.training import TrainConfig, load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
 
     path = os.fspath(path)
     file = os.path.join(path, "model.pt") if os.path.isdir(path) else path
@@ -297,7 +297,7 @@ def load_teacher(path: str | os.PathLike, name: str = "teacher") -> LoadedTeache
         raise EvalError(f"checkpoint {name!r}: no teacher checkpoint at {file!r} (model.pt of a teacher_* run)")
     try:
         ckpt = torch.load(file, map_location="cpu", weights_only=False)
-        tcfg = load_train_config(overrides=read_checkpoint_infos(file)["config"])
+        tcfg = load_train_config(overrides=stored_config(TrainConfig, read_checkpoint_infos(file)["config"]))
     except Exception as err:
         raise EvalError(f"checkpoint {name!r}: {file!r} is not a readable training checkpoint: {err}") from None
     groups = tcfg.runner.obs_groups.get("actor", [])

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from envs.config import to_dict
+from envs.config import stored_config, to_dict
 from shield_nav.baselines import BASELINES
 from shield_nav.evaluation.config import (
     EVAL_FORMAT_VERSION,
@@ -202,11 +202,15 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
             old = json.load(f)
         added = None
         if old.get("identity_sha256") != digest and old.get("checkpoint_sha256") == ident["checkpoint_sha256"]:
-            added = _added_default_keys(old.get("config"), _plain(ident["config"]), _plain(to_dict(EvalConfig())))
-            if added:
-                print(f"[eval] resuming {out_dir!r}, written before these config keys existed (all at their "
-                      f"defaults now): {', '.join(added)}", file=sys.stderr)  # fmt: skip
-        if old.get("identity_sha256") != digest and not added:
+            was = old.get("config")
+            meant = _plain(stored_config(EvalConfig, was)) if isinstance(was, dict) else was  # as it ran
+            added = _added_default_keys(meant, _plain(ident["config"]), _plain(to_dict(EvalConfig())))
+            if added is not None:
+                added += _added_default_keys(was, meant, meant) or []  # keys read with their earlier values
+                print(f"[eval] resuming {out_dir!r}, written before these config keys existed (each at its "
+                      f"default now, or at the value it had before): {', '.join(sorted(added))}",
+                      file=sys.stderr)  # fmt: skip
+        if old.get("identity_sha256") != digest and added is None:
             raise EvalError(
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
                 "the same command. Use another --out or delete the folder."

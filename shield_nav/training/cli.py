@@ -12,7 +12,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from envs.config import ConfigError
+from envs.config import ConfigError, stored_config
 from shield_nav.training.checks import check_files, read_checkpoint_infos
 from shield_nav.training.config import TrainConfig, load_train_config
 
@@ -58,7 +58,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
     overrides = overrides_from_args(args)
     if args.resume is not None:
-        stored = read_checkpoint_infos(args.resume, "--resume")["config"]
+        stored = stored_config(TrainConfig, read_checkpoint_infos(args.resume, "--resume")["config"])
         if args.config is not None:
             print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
         # The stored config is what ran; keys given now must exist in its algorithm's section.

@@ -36,7 +36,7 @@ from typing import Any
 
 import yaml
 
-from envs.config import ConfigError, to_dict
+from envs.config import ConfigError, stored_config, to_dict
 from shield_nav.training.config import TrainConfig, load_train_config
 
 PIPELINE_FILE = "pipeline.yaml"
@@ -245,7 +245,8 @@ def load_stored(root: str, overrides: Sequence[str] = ()) -> tuple[list[str], li
             if isinstance(runner.get(key), str):
                 runner[key] = _relocated(runner[key], root, earlier)
         try:
-            cfg = load_train_config(overrides=list(overrides), base=load_train_config(overrides=stage["config"]))
+            stored = stored_config(TrainConfig, stage["config"])
+            cfg = load_train_config(overrides=list(overrides), base=load_train_config(overrides=stored))
         except ConfigError as err:
             raise ConfigError(f"pipeline stage '{stage['name']}': {err}") from None
         names.append(stage["name"])

@@ -357,6 +357,29 @@ def test_resume_of_a_folder_written_before_a_config_key_existed(tmp_path, monkey
         E.evaluate(tiny_cfg(), out, progress=False)
 
 
+def test_a_folder_written_before_route_hysteresis_is_not_resumed_with_it(tmp_path, monkeypatch, capsys):
+    """baselines.expert.commit_dist came on by default when it was added: a manifest without it meant 0 (its
+    PRE_FIELD_VALUES), so today's default (1 m) is another run, and commit_dist=0 resumes it."""
+    out = str(tmp_path / "old")
+    E.evaluate(tiny_cfg("baselines.expert.commit_dist=0"), out, progress=False)
+    man_path = os.path.join(out, "manifest.json")
+    with open(man_path) as f:
+        man = json.load(f)
+    del man["config"]["baselines"]["expert"]["commit_dist"]
+    man["identity_sha256"] = "0" * 64
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    with pytest.raises(E.EvalError, match="different run"):
+        E.evaluate(tiny_cfg(), out, progress=False)
+    import shield_nav.evaluation.run as run_module
+
+    calls = []
+    monkeypatch.setattr(run_module, "run_unit", lambda spec: calls.append(spec.key))
+    E.evaluate(tiny_cfg("baselines.expert.commit_dist=0"), out, progress=False)
+    assert calls == []
+    assert "baselines.expert.commit_dist" in capsys.readouterr().err
+
+
 def test_eval_cli_subprocess(tmp_path):
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(

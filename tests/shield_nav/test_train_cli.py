@@ -12,7 +12,8 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from shield_nav.training import CHECKPOINT_FORMAT_VERSION, read_checkpoint_infos
+from envs.config import stored_config
+from shield_nav.training import CHECKPOINT_FORMAT_VERSION, TrainConfig, load_train_config, read_checkpoint_infos
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TINY = ["--config", "configs/train/quick.yaml", "--num-envs", "4", "--set", "runner.num_steps_per_env=8"]
@@ -307,8 +308,9 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         assert cfg.shield.r_safe == 0.5 and cfg.shield.memory_steps == 0 and cfg.shield.brake_accel == 8.0
         ckpt = torch.load(os.path.join(REPO, "checkpoints", "full", "model.pt"), weights_only=False)
         # the recipe rebuilds the shipped run: its stored config, read back with the defaults of keys added since
-        # (e.g. shield.passing, off), equals the recipe but for the name
-        stored = to_dict(load_train_config(overrides=ckpt["infos"]["config"]))
+        # (e.g. shield.passing, off) or the values they had before (expert.commit_dist 0), equals the recipe but for
+        # the name
+        stored = to_dict(load_train_config(overrides=stored_config(TrainConfig, ckpt["infos"]["config"])))
         assert {k for k in full if full[k] != stored.get(k)} <= {"name"}
         assert "passing" not in ckpt["infos"]["config"]["shield"] and not cfg.shield.passing
     else:
@@ -455,3 +457,19 @@ def test_format_1_checkpoint_config_is_migrated(tmp_path):
     assert type(cfg.runner.algorithm) is PPOConfig and cfg.runner.algorithm.clip_param == 0.3
     with pytest.warns(UserWarning, match=r"runner\.algorithm\.wta_epsilon = 0\.9 was not taken by 'PPO'"):
         migrate_flat_algorithm({"runner": {"algorithm": {**flat, "wta_epsilon": 0.9}}})
+
+
+def test_stored_config_reads_a_pre_hysteresis_config_as_it_ran():
+    """A stored config without runner.expert.params.expert.commit_dist ran without route hysteresis: read back, it
+    gets 0 (ExpertConfig.PRE_FIELD_VALUES), not today's default; a stored value is kept; other absent keys take
+    their defaults; the input is left as it is."""
+    from envs.config import to_dict
+
+    full = to_dict(TrainConfig())
+    assert full["runner"]["expert"]["params"]["expert"]["commit_dist"] == 1.0
+    del full["runner"]["expert"]["params"]["expert"]["commit_dist"], full["runner"]["expert"]["params"]["expert"]["k_v"]
+    back = load_train_config(overrides=stored_config(TrainConfig, full))
+    assert back.runner.expert.params.expert.commit_dist == 0.0 and back.runner.expert.params.expert.k_v == 4.0
+    assert "commit_dist" not in full["runner"]["expert"]["params"]["expert"]
+    full["runner"]["expert"]["params"]["expert"]["commit_dist"] = 2.5
+    assert load_train_config(overrides=stored_config(TrainConfig, full)).runner.expert.params.expert.commit_dist == 2.5

@@ -293,16 +293,24 @@ def drag_accel(vel: np.ndarray, R_wb: np.ndarray, airframe: Any) -> np.ndarray:
     return a - k * np.linalg.norm(vel, axis=1, keepdims=True) * vel
 
 
+def _project(points: np.ndarray, paths: np.ndarray) -> tuple:
+    """Feet of the perpendiculars from points (N, 3) onto every segment of their polylines (N, K+1, 3).
+
+    Returns ``(feet (N, K, 3), distances (N, K), t (N, K) in [0, 1] along each segment, segment vectors (N, K, 3))``.
+    """
+    a, ab = paths[:, :-1], np.diff(paths, axis=1)
+    t = np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
+    t = np.clip(t, 0.0, 1.0)
+    feet = a + t[..., None] * ab
+    return feet, np.linalg.norm(feet - points[:, None], axis=2), t, ab
+
+
 def polyline_distance(points: np.ndarray, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance (N,) from each point (N, 3) to its polyline (N, K+1, 3), and a vertex index (N,).
 
     The index is the nearest segment's end closer to the foot of the perpendicular.
     """
-    a, b = paths[:, :-1], paths[:, 1:]
-    ab = b - a
-    t = np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
-    t = np.clip(t, 0.0, 1.0)
-    d = np.linalg.norm(a + t[..., None] * ab - points[:, None], axis=2)
+    _, d, t, _ = _project(points, paths)
     seg = d.argmin(axis=1)
     rows = np.arange(len(points))
     return d[rows, seg], seg + (t[rows, seg] > 0.5)
@@ -316,21 +324,17 @@ def resample_ahead(points: np.ndarray, paths: np.ndarray, m: int, ds: float, ble
     linearly over ``blend`` samples. Returns the paths, the distances (N,) to the polylines, and whether (N,) each
     polyline reaches ``m ds`` beyond its foot.
     """
-    a, ab = paths[:, :-1], np.diff(paths, axis=1)
-    seglen2 = np.maximum(np.einsum("nkd,nkd->nk", ab, ab), 1e-18)
-    t = np.clip(np.einsum("nkd,nkd->nk", points[:, None] - a, ab) / seglen2, 0.0, 1.0)
-    feet = a + t[..., None] * ab
-    d = np.linalg.norm(feet - points[:, None], axis=2)
+    feet, d, t, ab = _project(points, paths)
     n = len(points)
     rows, seg = np.arange(n), d.argmin(axis=1)
-    seglen = np.sqrt(seglen2)
+    seglen = np.linalg.norm(ab, axis=2)
     cum = np.concatenate((np.zeros((n, 1)), np.cumsum(seglen, axis=1)), axis=1)
     s = cum[rows, seg, None] + t[rows, seg, None] * seglen[rows, seg, None] + ds * np.arange(m + 1)  # (N, m+1)
     reach = s[:, -1] <= cum[:, -1] + 1e-9
     idx = np.clip((cum[:, None, :] <= s[..., None]).sum(axis=2) - 1, 0, seglen.shape[1] - 1)
     r = rows[:, None]
     u = np.clip((s - cum[r, idx]) / np.maximum(seglen[r, idx], 1e-9), 0.0, 1.0)
-    out = a[r, idx] + u[..., None] * ab[r, idx]
+    out = paths[r, idx] + u[..., None] * ab[r, idx]
     w = np.maximum(0.0, 1.0 - np.arange(m + 1) / max(blend, 1))
     out += w[None, :, None] * (points - feet[rows, seg])[:, None, :]
     return out, d[rows, seg], reach

@@ -117,7 +117,8 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
             "num_envs": num_envs, "expert": dict(expert or {}), **out}  # fmt: skip
 
 
-def _set(text: str) -> tuple[str, Any]:
+def parse_key_value(text: str) -> tuple[str, Any]:
+    """``--set KEY=VALUE`` of the expert tools (here and ``bench expert``): the key and its YAML-parsed value."""
     key, sep, value = text.partition("=")
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"--set takes KEY=VALUE, got {text!r}")
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=600, help="control steps of 10 ms (default 600)")
     ap.add_argument("--num-envs", type=int, default=32, help="parallel envs (default 32)")
     ap.add_argument("--seed", type=int, default=5)
-    ap.add_argument("--set", dest="sets", type=_set, action="append", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--set", dest="sets", type=parse_key_value, action="append", default=[], metavar="KEY=VALUE",
                     help="an ExpertConfig key (repeat --set for several)")  # fmt: skip
     ap.add_argument("--json", action="store_true", help="print one JSON line instead of a table")
     args = ap.parse_args(argv)

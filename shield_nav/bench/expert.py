@@ -17,7 +17,7 @@ from envs.navigation import NavigationEnv
 from shield_nav.baselines import BaselineConfig, OracleConfig, OracleController
 from shield_nav.bench.common import emit, machine, parser
 from shield_nav.expert import PlannerController
-from shield_nav.speed_budget import _set
+from shield_nav.speed_budget import parse_key_value
 
 
 def main(argv: list[str]) -> dict:
@@ -26,7 +26,7 @@ def main(argv: list[str]) -> dict:
     p.add_argument("--num-envs", type=int, default=50)
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--speed", type=float, default=7.0)
-    p.add_argument("--set", dest="sets", type=_set, action="append", default=[], metavar="KEY=VALUE",
+    p.add_argument("--set", dest="sets", type=parse_key_value, action="append", default=[], metavar="KEY=VALUE",
                    help="an ExpertConfig key of the timed expert (repeat --set for several)")  # fmt: skip
     args = p.parse_args(argv)
     expert = dict(args.sets)

@@ -30,8 +30,9 @@ rest numpy over envs):
 With ``commit_dist`` 0 the expert is stateless: its command depends only on the current state, so it labels any
 state a student reaches (DAgger). With route hysteresis (``commit_dist`` > 0) it also remembers each env's last path;
 it is called once per env step in evaluation and in DAgger's labelling alike, and an env whose episode starts again
-(or a second call without a step between) gets the fresh trace. It reads the map, so it is **privileged**: an upper
-bound, not a competitor.
+(or a second call without a step between) gets the fresh trace. Velocity-keyed route choice (``predict_s`` > 0)
+is the Markovian alternative: the route is chosen from position and velocity, no memory. It reads the map, so it is
+**privileged**: an upper bound, not a competitor.
 """
 
 from __future__ import annotations
@@ -111,6 +112,18 @@ class ExpertConfig:
     if that is lower), and it is at most ``commit_slack`` longer (arc length plus the geodesic distance left at its
     end). Near the ridge between two ways round an obstacle the fresh trace flips from one to the other between
     steps; the committed path keeps the way already begun until ``commit_dist`` ahead."""
+    predict_s: float = 0.0
+    """Velocity-keyed route choice (0: off) [s], a Markovian alternative to ``commit_dist`` (use one of the two).
+    Each step a second path is traced from where the vehicle will be in ``predict_s`` at its current velocity: the
+    straight segment to ``x + v predict_s``, then down the field from there. Where that path goes another way than
+    the fresh trace (a sample of the fresh trace within ``route_span`` metres lies more than ``route_tol`` from it),
+    it is flown instead, if it keeps the fresh trace's floor of clearance and is at most ``commit_slack`` longer.
+    Near the ridge between two ways round an obstacle the choice then follows the side the vehicle already moves
+    to, so a command toward one side keeps choosing it; the label stays a function of position and velocity."""
+    route_tol: float = 0.5
+    """How far [m] the velocity-keyed path must leave the fresh trace to count as another way (``predict_s``)."""
+    route_span: float = 4.0
+    """Arc length [m] of the fresh trace compared with the velocity-keyed path (``predict_s``)."""
     commit_max_dev: float = 0.6
     """Farthest the vehicle may be from the remembered path for the committed path to be considered [m]."""
     commit_blend: float = 1.5
@@ -181,7 +194,7 @@ class ExpertConfig:
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
                      "narrow_weight", "drag_ff", "commit_dist", "commit_max_dev", "commit_blend",
-                     "commit_slack"):  # fmt: skip
+                     "commit_slack", "predict_s", "route_tol"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -192,6 +205,10 @@ class ExpertConfig:
         longest = self.horizon - 2 * self.ds
         require(self.commit_dist < longest, f"{prefix}commit_dist",
                 f"must be shorter than horizon - 2 ds ({longest:g} m), got {self.commit_dist}")  # fmt: skip
+        require(self.route_span > 0, f"{prefix}route_span", f"must be > 0, got {self.route_span}")
+        require(not (self.predict_s > 0 and self.commit_dist > 0), f"{prefix}predict_s",
+                f"velocity-keyed route choice (predict_s {self.predict_s}) and route hysteresis (commit_dist "
+                f"{self.commit_dist}) exclude each other: set one of them to 0")  # fmt: skip
         require(self.curv_window >= 1, f"{prefix}curv_window", f"must be >= 1, got {self.curv_window}")
         require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
                 "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip
@@ -530,6 +547,10 @@ class PlannerController:
         path, clear = self._refine(env, raw, raw_clear)
         if ec.commit_dist > 0:
             path, clear = self._commit(env, x, k_steps, fields, path, clear)
+        elif ec.predict_s > 0:
+            path, clear = self._velocity_key(env, x, k_steps, fields, path, clear)
+        else:
+            self.committed = np.zeros(n, dtype=bool)
         return path, clear
 
     def _descend(self, env: Any, x: np.ndarray, k_steps: int, fallback: np.ndarray, fields: tuple) -> tuple:
@@ -588,6 +609,35 @@ class PlannerController:
         self._memory = (env, path.copy(), ep)
         self.committed = take
         return path, clear
+
+    def _velocity_key(self, env: Any, x: np.ndarray, k_steps: int, fields: tuple, path: np.ndarray,
+                      clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """Velocity-keyed route choice (``predict_s``): the predicted path where it goes another way and qualifies.
+
+        The predicted path is the straight segment from ``x`` to ``x + v predict_s``, then the trace down the field
+        from there, resampled every ``ds`` from ``x`` (:func:`resample_ahead`). Returns the path flown and its
+        clearance; ``self.committed`` marks the envs that fly the predicted path.
+        """
+        ec = self.ec
+        n = env.num_envs
+        x_p = x + np.asarray(env.vehicles.vel_w, dtype=np.float64) * ec.predict_s
+        tail, _ = self._descend(env, x_p, k_steps, self.fallback, fields)
+        tail, _ = self._refine(env, tail, np.zeros(tail.shape[:2]))
+        poly = np.concatenate((x[:, None], tail), axis=1)
+        b_path, _, _ = resample_ahead(x, poly, k_steps, ec.ds, 1)
+        ids = np.repeat(env.scene_id_buf, k_steps + 1)
+        b_cl = env.field_stack.esdf(ids, b_path.reshape(-1, 3)).reshape(n, k_steps + 1)
+        span = min(k_steps, max(1, int(round(ec.route_span / ec.ds))))
+        apart = np.zeros(n)
+        for k in range(1, span + 1):  # how far the fresh trace's first route_span metres leave the predicted path
+            apart = np.maximum(apart, polyline_distance(path[:, k], b_path)[0])
+        r_vehicle = env.cfg.vehicle.airframe.collision_radius
+        floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.field_radius - ec.smooth_slack)
+        safe = b_cl.min(axis=1) >= np.minimum(clear.min(axis=1), floor) - 1e-9
+        cost_a, cost_b = self._route_cost(env, path), self._route_cost(env, b_path)
+        take = (apart > ec.route_tol) & safe & (cost_b <= cost_a + ec.commit_slack)
+        self.committed = take
+        return np.where(take[:, None, None], b_path, path), np.where(take[:, None], b_cl, clear)
 
     def _route_cost(self, env: Any, path: np.ndarray) -> np.ndarray:
         """Arc length of paths (N, K+1, 3) plus the geodesic distance left at their ends, on each env's field."""

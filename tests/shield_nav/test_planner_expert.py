@@ -181,10 +181,76 @@ def test_committed_path_gates_reset_and_new_episodes():
     assert not ctrl.committed.any()
     tight = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=2.0, commit_slack=100.0,
                                                                  commit_max_dev=0.0)))  # fmt: skip
-    tight.commands(env)
-    env.local_pos[:] += 0.05  # off the remembered path by 0.087 m: beyond a max deviation of 0
-    tight.plan(env)
-    assert not tight.committed.any()
+    loose = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=2.0, commit_slack=100.0,
+                                                                 commit_max_dev=0.1)))  # fmt: skip
+    for ctrl, commits in ((tight, False), (loose, True)):
+        ctrl.commands(env)  # remembers paths that start at the vehicles
+        env.vehicles.pos_w[:] += 0.05  # off the remembered paths by 0.087 m: beyond 0, within 0.1
+        env.episode_length_buf[:] += 1  # as if a step had passed
+        ctrl.plan(env)
+        assert ctrl.committed.all() == commits and ctrl.committed.any() == commits
+
+
+def _ridge(env, dx=4.0):
+    """A point on the ridge between two ways round an obstacle: (env index, y0, y1, states) where the fresh trace
+    from ``x + (dx, y0, 0)`` and from 0.1 m beside it, ``y1``, part more than 1.5 m at 4.2 m along, both with a
+    clearance of at least 1 m. Scanned over lateral offsets of every env's start from -2 to 2 m."""
+    ctrl = PlannerController(BaselineConfig())
+    x0 = env.vehicles.pos_w.copy()
+    offs = np.arange(-20, 21) * 0.1
+    at, clear = [], []
+    for o in offs:
+        env.vehicles.pos_w[:] = x0 + np.array([dx, o, 0.0])
+        plan = ctrl.plan(env)
+        at.append(plan["path"][:, 12] - np.array([0.0, o, 0.0]))
+        clear.append(plan["clear"][:, 0])
+    jump = np.linalg.norm(np.diff(np.array(at), axis=0), axis=2)  # (40, N)
+    clear = np.array(clear)
+    jump[(clear[:-1] < 1.0) | (clear[1:] < 1.0)] = 0.0
+    a, i = np.unravel_index(jump.argmax(), jump.shape)
+    assert jump[a, i] > 1.5, "no ridge in the scanned scenes"
+    return int(i), x0 + np.array([dx, 0.0, 0.0]), offs[a], offs[a + 1]
+
+
+def test_velocity_keyed_route_follows_the_side_the_vehicle_moves_to():
+    """At a ridge of the geodesic field (found by scanning offsets, ``_ridge``): a vehicle 0.2 m on one side of it
+    that moves sideways across it (so ``x + v predict_s`` lies 0.3 m beyond it) flies the other way round, i.e. the
+    straight segment to the predicted point and then the fresh trace from there; moving away from the ridge, or with
+    ``predict_s`` 0, it flies the fresh trace. The same holds from the other side."""
+    env = _env()
+    i, base, y0, y1 = _ridge(env)
+    ec = ExpertConfig(commit_dist=0.0, predict_s=0.2)
+    fresh = PlannerController(BaselineConfig())
+    for y_at, y_to in ((y0 - 0.2, y1 + 0.3), (y1 + 0.2, y0 - 0.3)):
+        env.vehicles.pos_w[:] = base + np.array([0.0, y_to, 0.0])
+        there = fresh.plan(env)["path"][i]  # the fresh trace from the predicted point
+        env.vehicles.pos_w[:] = base + np.array([0.0, y_at, 0.0])
+        here = fresh.plan(env)["path"][i]
+        x = env.local_pos[i].copy()
+        for sign in (1.0, -1.0):
+            env.vehicles.vel_w[:] = 0.0
+            env.vehicles.vel_w[:, 1] = sign * (y_to - y_at) / ec.predict_s
+            ctrl = PlannerController(BaselineConfig(expert=ec))
+            path = ctrl.plan(env)["path"][i]
+            if sign < 0:  # moving away from the ridge: the predicted point is on the same side
+                assert not ctrl.committed[i]
+                np.testing.assert_allclose(path, here)
+                continue
+            assert ctrl.committed[i]
+            # Sample k lies k ds along the polyline x -> there[0] -> there[1] -> ...: check two by hand.
+            gap = np.linalg.norm(there[0] - x)
+            assert gap == pytest.approx(0.6)  # 0.2 + 0.1 + 0.3 m
+            np.testing.assert_allclose(path[0], x)
+            np.testing.assert_allclose(path[1], x + 0.35 / gap * (there[0] - x), atol=1e-12)
+            s = 10 * ec.ds - gap  # sample 10 lies that far along the fresh trace from the predicted point
+            cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(there, axis=0), axis=1))))
+            j = np.searchsorted(cum, s) - 1
+            expect = there[j] + (s - cum[j]) / (cum[j + 1] - cum[j]) * (there[j + 1] - there[j])
+            np.testing.assert_allclose(path[10], expect, atol=1e-9)
+            assert np.linalg.norm(path[12] - here[12]) > 1.0  # the other way round
+    env.vehicles.vel_w[:, 1] = 5.0
+    off = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=0.0)))
+    np.testing.assert_allclose(off.plan(env)["path"], fresh.plan(env)["path"])
 
 
 def test_smoothing_passes_repeat_the_moving_average_by_hand():
@@ -295,10 +361,17 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
                                             ("drag_ff", -0.5), ("smooth_passes", 0), ("band_iters", -1),
                                             ("band_step", 0.0), ("band_clearance", -0.1), ("commit_dist", -1.0),
                                             ("commit_dist", 13.5), ("commit_max_dev", -0.1),
-                                            ("commit_blend", -1.0), ("commit_slack", -0.5)])  # fmt: skip
+                                            ("commit_blend", -1.0), ("commit_slack", -0.5), ("predict_s", -0.1),
+                                            ("route_tol", -0.1), ("route_span", 0.0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})
+
+
+def test_velocity_key_and_route_hysteresis_exclude_each_other():
+    with pytest.raises(ConfigError, match="expert.predict_s.*commit_dist"):
+        load_config(BaselineConfig, overrides={"expert.predict_s": 0.2, "expert.commit_dist": 1.0})
+    assert load_config(BaselineConfig, overrides={"expert.predict_s": 0.2, "expert.commit_dist": 0.0})
 
 
 def test_flat_inflated_field_falls_back_to_the_envs_own_field():

@@ -599,11 +599,7 @@ class PlannerController:
                 head_clear = env.field_stack.esdf(ids, head.reshape(-1, 3)).reshape(n, m)
                 b_path = np.concatenate((x[:, None], head, tail[:, 1:]), axis=1)
                 b_cl = np.concatenate((clear[:, :1], head_clear, tail_clear[:, 1:]), axis=1)
-                r_vehicle = env.cfg.vehicle.airframe.collision_radius
-                floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.field_radius - ec.smooth_slack)
-                safe = b_cl.min(axis=1) >= np.minimum(clear.min(axis=1), floor) - 1e-9
-                cost_a, cost_b = self._route_cost(env, path), self._route_cost(env, b_path)
-                take = ok & safe & (cost_b <= cost_a + ec.commit_slack)
+                take = ok & self._may_replace(env, path, clear, b_path, b_cl)
                 path = np.where(take[:, None, None], b_path, path)
                 clear = np.where(take[:, None], b_cl, clear)
         self._memory = (env, path.copy(), ep)
@@ -631,13 +627,22 @@ class PlannerController:
         apart = np.zeros(n)
         for k in range(1, span + 1):  # how far the fresh trace's first route_span metres leave the predicted path
             apart = np.maximum(apart, polyline_distance(path[:, k], b_path)[0])
+        take = (apart > ec.route_tol) & self._may_replace(env, path, clear, b_path, b_cl)
+        self.committed = take
+        return np.where(take[:, None, None], b_path, path), np.where(take[:, None], b_cl, clear)
+
+    def _may_replace(self, env: Any, path: np.ndarray, clear: np.ndarray, b_path: np.ndarray,
+                     b_cl: np.ndarray) -> np.ndarray:  # fmt: skip
+        """Whether (N,) the alternative path ``b_path`` may replace the fresh trace ``path``.
+
+        It must keep the fresh trace's floor of clearance (its smallest, or the smoothing floor if that is lower) and be
+        at most ``commit_slack`` longer (:meth:`_route_cost`).
+        """
+        ec = self.ec
         r_vehicle = env.cfg.vehicle.airframe.collision_radius
         floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.field_radius - ec.smooth_slack)
         safe = b_cl.min(axis=1) >= np.minimum(clear.min(axis=1), floor) - 1e-9
-        cost_a, cost_b = self._route_cost(env, path), self._route_cost(env, b_path)
-        take = (apart > ec.route_tol) & safe & (cost_b <= cost_a + ec.commit_slack)
-        self.committed = take
-        return np.where(take[:, None, None], b_path, path), np.where(take[:, None], b_cl, clear)
+        return safe & (self._route_cost(env, b_path) <= self._route_cost(env, path) + ec.commit_slack)
 
     def _route_cost(self, env: Any, path: np.ndarray) -> np.ndarray:
         """Arc length of paths (N, K+1, 3) plus the geodesic distance left at their ends, on each env's field."""

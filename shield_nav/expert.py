@@ -624,9 +624,10 @@ class PlannerController:
         ids = np.repeat(env.scene_id_buf, k_steps + 1)
         b_cl = env.field_stack.esdf(ids, b_path.reshape(-1, 3)).reshape(n, k_steps + 1)
         span = min(k_steps, max(1, int(round(ec.route_span / ec.ds))))
-        apart = np.zeros(n)
-        for k in range(1, span + 1):  # how far the fresh trace's first route_span metres leave the predicted path
-            apart = np.maximum(apart, polyline_distance(path[:, k], b_path)[0])
+        # How far the fresh trace's first route_span metres leave the predicted path: its samples 1..span, each
+        # against its env's predicted polyline.
+        d, _ = polyline_distance(path[:, 1 : span + 1].reshape(-1, 3), np.repeat(b_path, span, axis=0))
+        apart = d.reshape(n, span).max(axis=1)
         take = (apart > ec.route_tol) & self._may_replace(env, path, clear, b_path, b_cl)
         self.committed = take
         return np.where(take[:, None, None], b_path, path), np.where(take[:, None], b_cl, clear)

@@ -10,6 +10,10 @@ import argparse
 import os
 import sys
 
+from shield_nav.openmp import limit_spinning
+
+limit_spinning()  # before torch and numba load libgomp (shield_nav/openmp.py)
+
 DEFAULT_CONFIG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "configs", "eval", "default.yaml")
 
 

@@ -10,6 +10,10 @@ from __future__ import annotations
 import importlib
 import sys
 
+from shield_nav.openmp import limit_spinning
+
+limit_spinning()  # as train.py and eval.py do, so a timing measures what they run (shield_nav/openmp.py)
+
 BENCHMARKS = ("vehicle", "fields", "depth", "env", "train", "shield", "expert", "startup")
 
 

@@ -19,8 +19,14 @@ def parser(name: str, description: str) -> argparse.ArgumentParser:
 
 
 def machine() -> dict:
-    """Facts that make a timing comparable: CPU count, Python, platform."""
-    return {"cpu_count": os.cpu_count(), "python": platform.python_version(), "machine": platform.machine()}
+    """Facts that make a timing comparable: CPU count, Python, platform, libgomp's spin count (shield_nav/openmp.py)."""
+    return {
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+    }
 
 
 def peak_rss_mb() -> float:

@@ -1,0 +1,53 @@
+"""The OpenMP spin limit: set where the user chose nothing, never over their choice, and before libgomp loads."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from shield_nav.openmp import SPINCOUNT, limit_spinning
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def test_sets_the_spin_count_where_nothing_is_chosen():
+    env = {"PATH": "/bin"}
+    assert limit_spinning(env) is True
+    assert env == {"PATH": "/bin", "GOMP_SPINCOUNT": "10000"}
+    assert SPINCOUNT == "10000"
+
+
+@pytest.mark.parametrize("key,value", [("GOMP_SPINCOUNT", "300000"), ("OMP_WAIT_POLICY", "ACTIVE")])
+def test_the_users_choice_stands(key, value):
+    env = {key: value}
+    assert limit_spinning(env) is False
+    assert env == {key: value}  # nothing added, nothing changed
+
+
+_PROBE = """
+import os, runpy, sys
+runpy.run_path({script!r}, run_name="probe")  # the module's top level, not its main()
+maps = open("/proc/self/maps").read()
+print(os.environ.get("GOMP_SPINCOUNT"), "libgomp" in maps, "torch" in sys.modules)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="needs /proc (Linux)")
+@pytest.mark.parametrize("script", ["train.py", "eval.py"])
+def test_entry_points_set_it_before_libgomp_loads(script):
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE.format(script=os.path.join(REPO, script))],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True,
+    )  # fmt: skip
+    # Set, and no OpenMP runtime loaded yet: torch and numba read it when they load.
+    assert out.stdout.split() == ["10000", "False", "False"]
+    env["GOMP_SPINCOUNT"] = "300000"
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE.format(script=os.path.join(REPO, script))],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True,
+    )  # fmt: skip
+    assert out.stdout.split()[0] == "300000"

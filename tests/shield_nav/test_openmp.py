@@ -35,19 +35,19 @@ print(os.environ.get("GOMP_SPINCOUNT"), "libgomp" in maps, "torch" in sys.module
 """
 
 
+def _probe(script: str, env: dict) -> list[str]:
+    """GOMP_SPINCOUNT, whether libgomp is mapped, whether torch is imported, after ``script``'s top level ran."""
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE.format(script=os.path.join(REPO, script))],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True,
+    )  # fmt: skip
+    return out.stdout.split()
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="needs /proc (Linux)")
 @pytest.mark.parametrize("script", ["train.py", "eval.py"])
 def test_entry_points_set_it_before_libgomp_loads(script):
     env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
-    out = subprocess.run(
-        [sys.executable, "-c", _PROBE.format(script=os.path.join(REPO, script))],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True,
-    )  # fmt: skip
     # Set, and no OpenMP runtime loaded yet: torch and numba read it when they load.
-    assert out.stdout.split() == ["10000", "False", "False"]
-    env["GOMP_SPINCOUNT"] = "300000"
-    out = subprocess.run(
-        [sys.executable, "-c", _PROBE.format(script=os.path.join(REPO, script))],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True,
-    )  # fmt: skip
-    assert out.stdout.split()[0] == "300000"
+    assert _probe(script, env) == ["10000", "False", "False"]
+    assert _probe(script, {**env, "GOMP_SPINCOUNT": "300000"})[0] == "300000"

@@ -120,6 +120,9 @@ class ExpertConfig:
     it is flown instead, if it keeps the fresh trace's floor of clearance and is at most ``commit_slack`` longer.
     Near the ridge between two ways round an obstacle the choice then follows the side the vehicle already moves
     to, so a command toward one side keeps choosing it; the label stays a function of position and velocity."""
+    predict_min_speed: float = 0.0
+    """Velocity-keyed route choice only for envs whose target speed is at least this [m/s] (0: every env); the
+    others fly the fresh trace, as with ``predict_s`` 0."""
     route_tol: float = 0.5
     """How far [m] the velocity-keyed path must leave the fresh trace to count as another way (``predict_s``)."""
     route_span: float = 4.0
@@ -194,7 +197,7 @@ class ExpertConfig:
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
                      "narrow_weight", "drag_ff", "commit_dist", "commit_max_dev", "commit_blend",
-                     "commit_slack", "predict_s", "route_tol"):  # fmt: skip
+                     "commit_slack", "predict_s", "predict_min_speed", "route_tol"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -628,7 +631,8 @@ class PlannerController:
         # against its env's predicted polyline.
         d, _ = polyline_distance(path[:, 1 : span + 1].reshape(-1, 3), np.repeat(b_path, span, axis=0))
         apart = d.reshape(n, span).max(axis=1)
-        take = (apart > ec.route_tol) & self._may_replace(env, path, clear, b_path, b_cl)
+        fast = np.asarray(env.target_speed_buf) >= ec.predict_min_speed
+        take = fast & (apart > ec.route_tol) & self._may_replace(env, path, clear, b_path, b_cl)
         self.committed = take
         return np.where(take[:, None, None], b_path, path), np.where(take[:, None], b_cl, clear)
 

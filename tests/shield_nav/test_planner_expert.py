@@ -253,6 +253,29 @@ def test_velocity_keyed_route_follows_the_side_the_vehicle_moves_to():
     np.testing.assert_allclose(off.plan(env)["path"], fresh.plan(env)["path"])
 
 
+def test_velocity_keyed_route_only_at_or_above_predict_min_speed():
+    """``predict_min_speed`` gates the velocity key by each env's target speed: at the ridge, with the vehicle moving
+    across it, the env flies the other way round when its target speed is at or above the threshold and the fresh
+    trace (the same path as with ``predict_s`` 0) when it is 0.5 m/s below."""
+    env = _env()
+    i, base, y0, y1 = _ridge(env)
+    env.vehicles.pos_w[:] = base + np.array([0.0, y0 - 0.2, 0.0])
+    here = PlannerController(BaselineConfig()).plan(env)["path"][i]
+    env.vehicles.vel_w[:] = 0.0
+    env.vehicles.vel_w[:, 1] = (y1 + 0.3 - (y0 - 0.2)) / 0.2
+    gate = 7.0
+    for speed, keyed in ((gate, True), (gate + 2.0, True), (gate - 0.5, False)):
+        env.target_speed_buf[:] = speed
+        ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=0.0, predict_s=0.2,
+                                                                    predict_min_speed=gate)))  # fmt: skip
+        path = ctrl.plan(env)["path"][i]
+        assert bool(ctrl.committed[i]) == keyed
+        if keyed:
+            assert np.linalg.norm(path[12] - here[12]) > 1.0
+        else:
+            np.testing.assert_allclose(path, here)
+
+
 def test_smoothing_passes_repeat_the_moving_average_by_hand():
     """smooth_passes 2: each sample is the 7-sample average of the once-smoothed path (or keeps its once-smoothed
     value where the average would come closer than field_radius - smooth_slack to an obstacle)."""
@@ -362,7 +385,8 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
                                             ("band_step", 0.0), ("band_clearance", -0.1), ("commit_dist", -1.0),
                                             ("commit_dist", 13.5), ("commit_max_dev", -0.1),
                                             ("commit_blend", -1.0), ("commit_slack", -0.5), ("predict_s", -0.1),
-                                            ("route_tol", -0.1), ("route_span", 0.0)])  # fmt: skip
+                                            ("predict_min_speed", -1.0), ("route_tol", -0.1),
+                                            ("route_span", 0.0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

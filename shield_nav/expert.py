@@ -212,6 +212,9 @@ class ExpertConfig:
         require(not (self.predict_s > 0 and self.commit_dist > 0), f"{prefix}predict_s",
                 f"velocity-keyed route choice (predict_s {self.predict_s}) and route hysteresis (commit_dist "
                 f"{self.commit_dist}) exclude each other: set one of them to 0")  # fmt: skip
+        require(self.predict_min_speed == 0 or self.predict_s > 0, f"{prefix}predict_min_speed",
+                f"gates the velocity-keyed route choice, which is off (predict_s 0): set predict_s > 0 or "
+                f"predict_min_speed to 0, got {self.predict_min_speed}")  # fmt: skip
         require(self.curv_window >= 1, f"{prefix}curv_window", f"must be >= 1, got {self.curv_window}")
         require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
                 "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip

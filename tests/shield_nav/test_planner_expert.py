@@ -395,6 +395,8 @@ def test_bad_expert_config_names_the_key(key, value):
 def test_velocity_key_and_route_hysteresis_exclude_each_other():
     with pytest.raises(ConfigError, match="expert.predict_s.*commit_dist"):
         load_config(BaselineConfig, overrides={"expert.predict_s": 0.2, "expert.commit_dist": 1.0})
+    with pytest.raises(ConfigError, match="expert.predict_min_speed.*predict_s 0"):
+        load_config(BaselineConfig, overrides={"expert.predict_min_speed": 8.0, "expert.commit_dist": 0.0})
     assert load_config(BaselineConfig, overrides={"expert.predict_s": 0.2, "expert.commit_dist": 0.0})
 
 

@@ -28,6 +28,11 @@ bearing (``away``: a way the goal's direction does not suggest, chosen by the ma
 
 from __future__ import annotations
 
+from shield_nav.openmp import limit_spinning
+
+if __name__ == "__main__":  # run as a tool: as train.py does, before torch and numba load libgomp
+    limit_spinning()
+
 import argparse
 import json
 import os

@@ -28,6 +28,11 @@ Results are grouped by scene (its family index). The default scenes are the benc
 
 from __future__ import annotations
 
+from shield_nav.openmp import limit_spinning
+
+if __name__ == "__main__":  # run as a tool: as train.py does, before torch and numba load libgomp
+    limit_spinning()
+
 import argparse
 import json
 import math

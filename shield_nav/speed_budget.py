@@ -27,6 +27,11 @@ how fast the expert can fly safely.
 
 from __future__ import annotations
 
+from shield_nav.openmp import limit_spinning
+
+if __name__ == "__main__":  # run as a tool: as train.py does, before torch and numba load libgomp
+    limit_spinning()
+
 import argparse
 import json
 import math

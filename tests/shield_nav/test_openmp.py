@@ -51,3 +51,28 @@ def test_entry_points_set_it_before_libgomp_loads(script):
     # Set, and no OpenMP runtime loaded yet: torch and numba read it when they load.
     assert _probe(script, env) == ["10000", "False", "False"]
     assert _probe(script, {**env, "GOMP_SPINCOUNT": "300000"})[0] == "300000"
+
+
+_TOOL_PROBE = """
+import os, runpy, sys
+sys.argv = [{module!r}, "--help"]
+try:
+    runpy.run_module({module!r}, run_name={run_name!r}, alter_sys=True)
+except SystemExit as e:  # argparse's --help
+    assert e.code == 0, e.code
+print(os.environ.get("GOMP_SPINCOUNT"))
+"""
+
+
+@pytest.mark.parametrize("module", ["shield_nav.imitation", "shield_nav.route_view", "shield_nav.speed_budget"])
+def test_analysis_tools_set_it_only_when_run_as_tools(module):
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+
+    def probe(run_name: str) -> str:
+        code = _TOOL_PROBE.format(module=module, run_name=run_name)
+        out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
+                             timeout=120, check=True)  # fmt: skip
+        return out.stdout.split()[-1]
+
+    assert probe("__main__") == "10000"  # python -m: set, as train.py and eval.py do
+    assert probe("imported") == "None"  # imported as a library: the environment is the caller's

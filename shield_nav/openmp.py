@@ -4,9 +4,10 @@ torch's CPU kernels and numba's parallel loops (the depth renderer, the expert's
 After each parallel region libgomp's idle threads spin for the next one, 300,000 times by default, before they sleep.
 Where another process wants the same cores (a training run beside an evaluation on a 2-core machine), those spins
 take the cores from the threads that have work, and both processes slow down several-fold. ``train.py``, ``eval.py``,
-``python -m shield_nav.bench`` and the analysis tools run with ``-m`` (imitation, route_view, speed_budget) therefore shorten the spin to :data:`SPINCOUNT` before anything loads libgomp,
-unless the user chose ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` themselves (``GOMP_SPINCOUNT=300000`` restores
-libgomp's default). Measured in docs/training.md, "Threads".
+``python -m shield_nav.bench`` and the analysis tools run with ``-m`` (imitation, route_view, speed_budget)
+therefore shorten the spin to :data:`SPINCOUNT` before anything loads libgomp, unless the user chose
+``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` themselves (``GOMP_SPINCOUNT=300000`` restores libgomp's default).
+Measured in docs/training.md, "Threads".
 
 Nothing here imports torch or numba; the variable only acts if it is set before they load.
 """

@@ -151,12 +151,13 @@ class ShieldConfig:
     control_dt: float = 0.01
     """Period of the shield's calls [s] (the vehicle's command period); with ``lag_s`` > 0 the acceleration is
     (v - v_previous_call) / control_dt."""
-    min_altitude: float = 0.0
+    min_altitude: float = 0.35
     """If > 0, one more HOCBF row keeps the vehicle's height z (ground at z = 0, known from the state estimate, not
     the camera) above this value [m]: the planar barrier B = z - min_altitude gives a_z >= -alpha1 v_z - alpha0 B.
-    Unlike the point barrier it is exact for a plane, so level flight never triggers it. 0: off (the paper's
-    depth-only shield). Without it the obstacle rows' corrections can push a vehicle into the unseen ground
-    (docs/shield.md, "Ground row")."""
+    Unlike the point barrier it is exact for a plane, so level flight never triggers it. Without it the obstacle
+    rows' corrections, or a policy's own dive, can take a vehicle into the unseen ground. 0: off (the paper's
+    depth-only shield, and the training-loop shield the shipped Full was trained behind). Default 0.35 since
+    2026-11-27, chosen on the benchmark validation scenes (docs/shield.md, "Ground row")."""
     barrier: str = "braking"
     """Which barrier each obstacle point gets. ``braking`` (default): the first-order stopping-distance barrier
     h = sqrt(2 a_b (|r| - r_safe)) - c, with c the closing speed towards the point and a_b = ``brake_accel``: the

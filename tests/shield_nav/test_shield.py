@@ -340,9 +340,11 @@ def test_ground_row_hand_computed_and_projection():
     cmd = np.array([[G, 0.0, 0.0, 0.3]])  # a_raw = 0 (hover thrust, level), yaw 0.3
     pos, vel = np.array([[4.0, 1.0, 0.5]]), np.array([[3.0, 0.0, -2.0]])
     nothing = [np.zeros((0, 3))]
-    off = HOCBFShield(ShieldConfig(**P4)).filter(cmd, pos, vel, points_w=nothing)
+    off = HOCBFShield(ShieldConfig(**P4, min_altitude=0.0)).filter(cmd, pos, vel, points_w=nothing)
     assert not off.active[0] and np.array_equal(off.command, cmd)  # the paper's shield ignores the ground
     on = HOCBFShield(ShieldConfig(**P4, min_altitude=0.35)).filter(cmd, pos, vel, points_w=nothing)
+    default = HOCBFShield(ShieldConfig(**P4)).filter(cmd, pos, vel, points_w=nothing)
+    np.testing.assert_array_equal(default.command, on.command)  # the row is on by default, at 0.35 m
     # The only row is a_z >= 13.6; the projection of a_raw = 0 onto it is (0, 0, 13.6), within the thrust limits.
     assert on.active[0] and on.status[0] == STATUS_SOLVED and on.num_constraints[0] == 0
     np.testing.assert_allclose(on.accel_safe[0], [0.0, 0.0, 13.6], atol=1e-6)
@@ -366,7 +368,7 @@ def test_ground_row_joins_the_obstacle_rows():
     assert out.active[0] and len(b_vec) > 0
     assert out.accel_safe[0, 2] >= b_g - 1e-6
     assert np.all(a_mat @ out.accel_safe[0] >= b_vec - 1e-6)
-    plain = HOCBFShield(ShieldConfig(**P4)).filter(cmd, pos, vel, points_w=[bar])
+    plain = HOCBFShield(ShieldConfig(**P4, min_altitude=0.0)).filter(cmd, pos, vel, points_w=[bar])
     assert plain.accel_safe[0, 2] < b_g  # without the row the correction goes down, into the ground
 
 

@@ -301,11 +301,13 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         base = to_dict(load_train_config(os.path.join(REPO, "configs", "train", "recipe_dijkstra_cbf.yaml")))
         full = to_dict(cfg)
         assert {k for k in full if full[k] != base[k]} == {"name", "shield_in_loop", "shield"} and cfg.shield_in_loop
-        # the shield it trains behind: the default but for the radius, memory and planned braking deceleration the
-        # shipped run was trained with (the deploy defaults changed after it: 0.3 m, 50 steps, a_b 10)
+        # the shield it trains behind: the default but for the radius, memory, planned braking deceleration and
+        # ground row the shipped run was trained with (the deploy defaults changed after it: 0.3 m, 50 steps, a_b 10,
+        # ground row at 0.35 m)
         assert {k for k in full["shield"] if full["shield"][k] != base["shield"][k]} == {
-            "r_safe", "memory_steps", "brake_accel"}  # fmt: skip
+            "r_safe", "memory_steps", "brake_accel", "min_altitude"}  # fmt: skip
         assert cfg.shield.r_safe == 0.5 and cfg.shield.memory_steps == 0 and cfg.shield.brake_accel == 8.0
+        assert cfg.shield.min_altitude == 0.0
         ckpt = torch.load(os.path.join(REPO, "checkpoints", "full", "model.pt"), weights_only=False)
         # the recipe rebuilds the shipped run: its stored config, read back with the defaults of keys added since
         # (e.g. shield.passing, off) or the values they had before (expert.commit_dist 0), equals the recipe but for

@@ -20,16 +20,37 @@ pipeline folder keeps ``pipeline.yaml`` (the resolved configs) and, per finished
 continues the interrupted one from its newest ``model_<it>.pt``, and runs the rest with the stored configs.
 A pipeline folder may be moved (committed for a later session, copied to another clone): the inputs its own earlier
 stages produced are read from where the folder is now.
+
+**Candidates and selection.** A stage may train several candidates that differ only in their seed and keep the one
+that flies best on validation scenes::
+
+      - name: full
+        config: recipe_full.yaml
+        set: ["runner.actor_init=${student}"]
+        candidates: 3                     # seeds seed, seed + 1, seed + 2 (seed: the stage's resolved config)
+        select:
+          eval: ../eval/validation_benchmark.yaml   # never the test scenes
+          configuration: full             # the eval.py row that flies each candidate's exported policy
+          set: ["workers=2"]              # dotted eval-config overrides
+
+Each candidate is an ordinary run folder ``<NN>_<stage>/seed_<s>/`` that resumes after a kill; each is flown by the
+evaluation harness into ``<NN>_<stage>/select_seed_<s>/`` (resumable by unit). The candidate with the most successes
+over all the eval's trials is kept (a tie keeps the lower seed): its final checkpoint, ``exported/`` and ``params/``
+are copied into ``<NN>_<stage>/``, so a later stage's ``${stage}`` and the stage folder read like a one-run stage's.
+``<NN>_<stage>/selection.json`` records every candidate's successes per speed and the choice.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import glob
 import json
 import os
 import re
+import shutil
 import signal
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -41,20 +62,41 @@ from shield_nav.training.config import TrainConfig, load_train_config
 
 PIPELINE_FILE = "pipeline.yaml"
 STAGE_FILE = "stage.json"
+CANDIDATE_FILE = "candidate.json"
+SELECTION_FILE = "selection.json"
 _PIPELINE_KEYS = {"name", "stages"}
-_STAGE_KEYS = {"name", "config", "set"}
+_STAGE_KEYS = {"name", "config", "set", "candidates", "select"}
+_SELECT_KEYS = {"eval", "configuration", "set"}
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _REF = re.compile(r"\$\{([^}]*)\}")
 _INPUT_KEYS = ("actor_init", "student_init", "teacher_checkpoint")
 
 
 @dataclass
+class Selection:
+    """How a stage with candidates keeps one.
+
+    An eval config on validation scenes, the row that flies each candidate's exported policy, and dotted overrides
+    of the eval config.
+    """
+
+    eval: str
+    configuration: str
+    overrides: list[str] = field(default_factory=list)
+
+
+@dataclass
 class Stage:
-    """One stage: a train config file and the overrides applied on top of it (``${stage}`` references allowed)."""
+    """One stage: a train config file and the overrides applied on top of it (``${stage}`` references allowed).
+
+    Optionally several candidates (seeds) and the selection that keeps one.
+    """
 
     name: str
     config: str
     overrides: list[str] = field(default_factory=list)
+    candidates: int = 1
+    select: Selection | None = None
 
 
 @dataclass
@@ -126,8 +168,42 @@ def load_pipeline(path: str | os.PathLike) -> Pipeline:
                 if not any(s.name == ref for s in stages):
                     raise ConfigError(f"pipeline key '{key}.set' {where}: '${{{ref}}}' in {o!r} is not an earlier "
                                       f"stage; earlier: {[s.name for s in stages]}")  # fmt: skip
-        stages.append(Stage(sname, config_path, list(overrides)))
+        candidates, select = _parse_candidates(item, key, where, os.path.dirname(os.path.abspath(src)))
+        stages.append(Stage(sname, config_path, list(overrides), candidates, select))
     return Pipeline(name, stages, src)
+
+
+def _parse_candidates(item: dict, key: str, where: str, folder: str) -> tuple[int, Selection | None]:
+    """A stage's ``candidates`` and ``select`` keys, checked by name."""
+    candidates = item.get("candidates", 1)
+    if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
+        raise ConfigError(f"pipeline key '{key}.candidates' {where}: must be an integer >= 1, got {candidates!r}")
+    raw = item.get("select")
+    if candidates == 1:
+        if raw is not None:
+            raise ConfigError(f"pipeline key '{key}.select' {where}: a selection needs 'candidates' >= 2")
+        return 1, None
+    if not isinstance(raw, dict):
+        raise ConfigError(
+            f"pipeline key '{key}.select' {where}: 'candidates: {candidates}' needs a 'select' "
+            "mapping with 'eval' (an eval config on validation scenes) and 'configuration' (its row)"
+        )
+    unknown = sorted(set(raw) - _SELECT_KEYS)
+    if unknown:
+        raise ConfigError(f"pipeline key '{key}.select.{unknown[0]}' {where}: unknown; known: {sorted(_SELECT_KEYS)}")
+    path = raw.get("eval")
+    if not isinstance(path, str):
+        raise ConfigError(f"pipeline key '{key}.select.eval' {where}: must be a path to an eval config")
+    path = os.path.normpath(os.path.join(folder, path))
+    if not os.path.isfile(path):
+        raise ConfigError(f"pipeline key '{key}.select.eval' {where}: no such file {path!r}")
+    row = raw.get("configuration")
+    if not isinstance(row, str) or not row:
+        raise ConfigError(f"pipeline key '{key}.select.configuration' {where}: must name one eval.py row")
+    overrides = raw.get("set", [])
+    if not isinstance(overrides, list) or not all(isinstance(o, str) and "=" in o for o in overrides):
+        raise ConfigError(f"pipeline key '{key}.select.set' {where}: must be a list of 'dotted.key=value' strings")
+    return candidates, Selection(path, row, list(overrides))
 
 
 def stage_dir(root: str, index: int, stage: Stage | str) -> str:
@@ -193,21 +269,88 @@ def _hms(seconds: float) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
+def selection_eval_config(stage_name: str, select: Selection | dict) -> Any:
+    """The :class:`shield_nav.evaluation.EvalConfig` that flies a stage's candidates, checked before any work.
+
+    ``select`` is the pipeline file's :class:`Selection` or the dict a pipeline folder stored. Raises
+    :class:`ConfigError` naming the stage: a bad eval key, an unknown row, a row that flies no policy, or an eval on
+    the held-out test scenes (selection is made on validation scenes only).
+    """
+    from shield_nav.evaluation.config import POLICY_CONTROLLERS, EvalConfig, EvalError, load_eval_config, resolve_rows
+
+    where = f"pipeline stage '{stage_name}': select"
+    try:
+        if isinstance(select, Selection):
+            cfg = load_eval_config(select.eval, select.overrides)
+            row_name = select.configuration
+        else:
+            cfg = load_eval_config(overrides=stored_config(EvalConfig, select["eval_config"]))
+            row_name = select["configuration"]
+        cfg.configurations = [row_name]
+        row = resolve_rows(cfg)[row_name]
+    except (ConfigError, EvalError) as err:
+        raise ConfigError(f"{where}: {err}") from None
+    if row.controller not in POLICY_CONTROLLERS:
+        raise ConfigError(f"{where}.configuration: row {row_name!r} flies the {row.controller!r} controller, not a "
+                          "trained policy")  # fmt: skip
+    if cfg.scenes.seed is None and cfg.scenes.family in ("ablation", "benchmark"):
+        raise ConfigError(
+            f"{where}.eval: it flies the held-out test scenes ({cfg.scenes.family!r} at its own "
+            "seed); choose among candidates on validation scenes (configs/eval/validation_*.yaml)"
+        )
+    return cfg
+
+
+def candidate_configs(cfg: TrainConfig, candidates: int) -> list[tuple[int, TrainConfig]]:
+    """(seed, config) of each candidate: the stage's config with ``seed`` and ``env.seed`` raised by 0, 1, ..."""
+    out = []
+    for k in range(candidates):
+        over = [f"seed={cfg.seed + k}", f"env.seed={cfg.env.seed + k}"]
+        out.append((cfg.seed + k, load_train_config(overrides=over, base=cfg)))
+    return out
+
+
+def choose(results: Sequence[dict[str, Any]]) -> int:
+    """Index of the candidate with the most successes (a tie keeps the earliest, i.e. the lowest seed).
+
+    Every candidate must have been flown on the same number of trials (the same pinned trials).
+    """
+    if not results:
+        raise ValueError("no candidates to choose from")
+    trials = {r["trials"] for r in results}
+    if len(trials) != 1 or 0 in trials:
+        raise RuntimeError(f"candidates were flown on different or no trials: {sorted(trials)}")
+    best = max(r["successes"] for r in results)
+    return next(i for i, r in enumerate(results) if r["successes"] == best)
+
+
 def start(pipeline: Pipeline, overrides: Sequence[str] = ()) -> str:
     """Check every stage, create the pipeline folder and store the resolved configs; return the folder."""
     probe = resolve(pipeline, "<pipeline>", overrides)  # fails on a bad key before any folder exists
     pairs = enumerate(zip(pipeline.stages, probe, strict=True))
     produced = {final_checkpoint(stage_dir("<pipeline>", i, s), c) for i, (s, c) in pairs}
     check_inputs([s.name for s in pipeline.stages], probe, produced)
+    selections = {s.name: selection_eval_config(s.name, s.select) for s in pipeline.stages if s.select is not None}
     from shield_nav.training.runner import new_stamped_dir
 
     root = new_stamped_dir(probe[0], pipeline.name)
     configs = resolve(pipeline, root, overrides)
+    stages = []
+    for s, c in zip(pipeline.stages, configs, strict=True):
+        entry: dict[str, Any] = {"name": s.name, "config": to_dict(c)}
+        if s.select is not None:
+            entry["candidates"] = s.candidates
+            entry["select"] = {
+                "configuration": s.select.configuration,
+                "source": os.path.relpath(s.select.eval),
+                "eval_config": to_dict(selections[s.name]),
+            }
+        stages.append(entry)
     record = {
         "name": pipeline.name,
         "source": os.path.relpath(pipeline.source) if pipeline.source else "",
         "overrides": list(overrides),
-        "stages": [{"name": s.name, "config": to_dict(c)} for s, c in zip(pipeline.stages, configs, strict=True)],
+        "stages": stages,
     }
     with open(os.path.join(root, PIPELINE_FILE), "w", encoding="utf-8") as f:
         yaml.safe_dump(record, f, sort_keys=False)
@@ -254,10 +397,129 @@ def load_stored(root: str, overrides: Sequence[str] = ()) -> tuple[list[str], li
     return names, configs
 
 
+def _train_stage(train_fn: Callable[..., str], cfg: TrainConfig, run_dir: str, label: str, root: str) -> dict[str, Any]:
+    """Train (or continue) one run folder to its final checkpoint; return its record (written by the caller)."""
+    latest = _latest_checkpoint(run_dir) if os.path.isdir(run_dir) else None
+    os.makedirs(run_dir, exist_ok=True)
+    how = f"resuming from {os.path.basename(latest)}" if latest else "starting"
+    print(f"[pipeline] {label} ({cfg.max_iterations} iterations): {how}", flush=True)
+    try:
+        train_fn(cfg, resume=latest, run_dir=run_dir)
+    except SystemExit as stop:
+        if stop.code == 128 + signal.SIGINT or stop.code == 128 + signal.SIGTERM:
+            print(f"[pipeline] interrupted in {label}; continue with: python train.py --resume {root}", flush=True)
+        raise
+    final = final_checkpoint(run_dir, cfg)
+    if not os.path.isfile(final):
+        raise RuntimeError(f"pipeline {label} ended without its final checkpoint {final!r}")
+    from shield_nav.training.checks import read_checkpoint_infos
+
+    infos = read_checkpoint_infos(final)
+    return {
+        "checkpoint": final,
+        "iterations": cfg.max_iterations,
+        "env_steps": int(infos.get("tot_timesteps", 0)),
+        "train_time_s": round(float(infos.get("tot_time", 0.0)), 1),
+        "finished_at": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+
+
+def _write_json(path: str, data: Any) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=2)
+    os.replace(tmp, path)  # a kill never leaves a half-written marker
+
+
+def _run_candidates(
+    train_fn: Callable[..., str],
+    eval_fn: Callable[..., dict],
+    root: str,
+    label: str,
+    name: str,
+    cfg: TrainConfig,
+    run_dir: str,
+    entry: dict[str, Any],
+) -> dict[str, Any]:
+    """Train a stage's candidates, fly each on the validation eval, keep the best in the stage folder."""
+    n = int(entry["candidates"])
+    ecfg = selection_eval_config(name, entry["select"])
+    row_name = entry["select"]["configuration"]
+    from shield_nav.evaluation.config import resolve_rows
+
+    policy = resolve_rows(ecfg)[row_name]
+    os.makedirs(run_dir, exist_ok=True)
+    trained = []
+    for k, (seed, ccfg) in enumerate(candidate_configs(cfg, n)):
+        cdir = os.path.join(run_dir, f"seed_{seed}")
+        marker = os.path.join(cdir, CANDIDATE_FILE)
+        clabel = f"{label} candidate {k + 1}/{n} (seed {seed})"
+        if os.path.isfile(marker):
+            with open(marker, encoding="utf-8") as f:
+                rec = {**json.load(f), "checkpoint": final_checkpoint(cdir, ccfg)}
+            print(f"[pipeline] {clabel}: finished before, skipped", flush=True)
+        else:
+            stale = os.path.join(run_dir, f"select_seed_{seed}")
+            if os.path.isdir(stale):  # flights of a checkpoint that is being replaced (a kill before its marker)
+                shutil.rmtree(stale)
+            rec = {"seed": seed, **_train_stage(train_fn, ccfg, cdir, clabel, root)}
+            _write_json(marker, rec)
+        trained.append((seed, cdir, rec))
+    results = []
+    t0 = time.monotonic()
+    for seed, cdir, rec in trained:
+        onnx = os.path.join(cdir, "exported", "policy.onnx")
+        if not os.path.isfile(onnx):
+            raise RuntimeError(f"pipeline {label}: candidate seed {seed} has no exported policy {onnx!r} to fly")
+        one = dataclasses.replace(ecfg, checkpoints={**ecfg.checkpoints, policy.policy: onnx})
+        trials = len(one.scene_indices) * one.trials_per_scene * len(one.speeds)
+        print(f"[pipeline] {label} selection: flying candidate seed {seed} as '{row_name}' on {one.name} "
+              f"({trials} trials, {one.workers} worker(s))", flush=True)  # fmt: skip
+        summary = eval_fn(one, os.path.join(run_dir, f"select_seed_{seed}"), (policy.policy,), progress=False)
+        cells = summary["cells"][row_name]
+        per_speed = {v: (c["successes"] if c else 0) for v, c in cells.items()}
+        n_trials = sum(c["n"] for c in cells.values() if c)
+        results.append({"seed": seed, "checkpoint": rec["checkpoint"], "successes": sum(per_speed.values()),
+                        "trials": n_trials, "successes_per_speed": per_speed})  # fmt: skip
+        rates = ", ".join(f"{v} m/s {s}" for v, s in per_speed.items())
+        print(f"[pipeline] {label} selection: seed {seed}: {results[-1]['successes']} of {n_trials} ({rates})",
+              flush=True)  # fmt: skip
+    best = choose(results)
+    chosen_seed, chosen_dir, chosen_rec = trained[best]
+    final = final_checkpoint(run_dir, cfg)
+    shutil.copy2(chosen_rec["checkpoint"], final)
+    for sub in ("exported", "params"):
+        if os.path.isdir(os.path.join(chosen_dir, sub)):
+            shutil.copytree(os.path.join(chosen_dir, sub), os.path.join(run_dir, sub), dirs_exist_ok=True)
+    select_time = round(time.monotonic() - t0, 1)
+    _write_json(os.path.join(run_dir, SELECTION_FILE), {
+        "eval": entry["select"]["source"],
+        "configuration": row_name,
+        "scene_family": ecfg.scenes.family,
+        "scene_seed": ecfg.scenes.seed,
+        "candidates": results,
+        "chosen_seed": chosen_seed,
+        "rule": "most successes over all trials; a tie keeps the lower seed",
+    })  # fmt: skip
+    print(f"[pipeline] {label}: keeps seed {chosen_seed} ({results[best]['successes']} of {results[best]['trials']}); "
+          f"copied to {final}", flush=True)  # fmt: skip
+    return {
+        "checkpoint": final,
+        "iterations": cfg.max_iterations,
+        "env_steps": sum(r["env_steps"] for _, _, r in trained),
+        "train_time_s": round(sum(r["train_time_s"] for _, _, r in trained), 1),
+        "select_time_s": select_time,
+        "candidates": [s for s, _, _ in trained],
+        "chosen_seed": chosen_seed,
+        "finished_at": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+
+
 def run(
     root: str,
     overrides: Sequence[str] = (),
     train_fn: Callable[..., str] | None = None,
+    eval_fn: Callable[..., dict] | None = None,
 ) -> list[dict[str, Any]]:
     """Run (or continue) the pipeline stored in ``root``; return each stage's record (``stage.json``).
 
@@ -265,54 +527,44 @@ def run(
         root: A pipeline folder made by :func:`start`.
         overrides: Dotted overrides on top of the stored configs (``--set`` on ``--resume``).
         train_fn: The trainer, :func:`shield_nav.training.runner.train` by default (tests pass one with a small env).
+        eval_fn: The evaluation of a stage's candidates, :func:`shield_nav.evaluation.evaluate` by default.
     """
     from shield_nav.training.runner import train
 
     train_fn = train if train_fn is None else train_fn
+    if eval_fn is None:
+        from shield_nav.evaluation import evaluate as eval_fn
     names, configs = load_stored(root, overrides)
+    with open(os.path.join(root, PIPELINE_FILE), encoding="utf-8") as f:
+        entries = yaml.safe_load(f)["stages"]
     records = []
-    for i, (name, cfg) in enumerate(zip(names, configs, strict=True)):
+    for i, (name, cfg, entry) in enumerate(zip(names, configs, entries, strict=True)):
         run_dir = stage_dir(root, i, name)
         marker = os.path.join(run_dir, STAGE_FILE)
+        label = f"stage {i + 1}/{len(names)} '{name}'"
         if os.path.isfile(marker):
             with open(marker, encoding="utf-8") as f:
                 records.append({**json.load(f), "checkpoint": final_checkpoint(run_dir, cfg)})  # where it is now
-            print(f"[pipeline] stage {i + 1}/{len(names)} '{name}': finished before, skipped", flush=True)
+            print(f"[pipeline] {label}: finished before, skipped", flush=True)
             continue
-        latest = _latest_checkpoint(run_dir) if os.path.isdir(run_dir) else None
-        os.makedirs(run_dir, exist_ok=True)
-        how = f"resuming from {os.path.basename(latest)}" if latest else "starting"
-        print(f"[pipeline] stage {i + 1}/{len(names)} '{name}' ({cfg.max_iterations} iterations): {how}", flush=True)
-        try:
-            train_fn(cfg, resume=latest, run_dir=run_dir)
-        except SystemExit as stop:
-            if stop.code == 128 + signal.SIGINT or stop.code == 128 + signal.SIGTERM:
-                print(f"[pipeline] interrupted in stage '{name}'; continue with: python train.py --resume {root}",
-                      flush=True)  # fmt: skip
-            raise
-        final = final_checkpoint(run_dir, cfg)
-        if not os.path.isfile(final):
-            raise RuntimeError(f"pipeline stage '{name}' ended without its final checkpoint {final!r}")
-        from shield_nav.training.checks import read_checkpoint_infos
-
-        infos = read_checkpoint_infos(final)
-        record = {
-            "stage": name,
-            "checkpoint": final,
-            "iterations": cfg.max_iterations,
-            "env_steps": int(infos.get("tot_timesteps", 0)),
-            "train_time_s": round(float(infos.get("tot_time", 0.0)), 1),
-            "finished_at": datetime.datetime.now().isoformat(timespec="seconds"),
-        }
-        with open(marker, "w", encoding="utf-8") as f:
-            json.dump(record, f, indent=2)
+        if entry.get("candidates", 1) > 1:
+            record = {"stage": name, **_run_candidates(train_fn, eval_fn, root, label, name, cfg, run_dir, entry)}
+        else:
+            record = {"stage": name, **_train_stage(train_fn, cfg, run_dir, label, root)}
+        _write_json(marker, record)
         records.append(record)
     total = sum(r["train_time_s"] for r in records)
+    selecting = sum(r.get("select_time_s", 0.0) for r in records)
     print(f"[pipeline] finished: {root}", flush=True)
     for r in records:
+        chosen = f"  (kept seed {r['chosen_seed']} of {r['candidates']})" if "chosen_seed" in r else ""
         print(f"[pipeline]   {r['stage']:<16} {r['iterations']:>5} it  {r['env_steps']:>10} steps  "
-              f"{_hms(r['train_time_s'])}  {r['checkpoint']}", flush=True)  # fmt: skip
+              f"{_hms(r['train_time_s'])}  {r['checkpoint']}{chosen}", flush=True)  # fmt: skip
     print(f"[pipeline]   total training time {_hms(total)}", flush=True)
-    with open(os.path.join(root, "summary.json"), "w", encoding="utf-8") as f:
-        json.dump({"stages": records, "train_time_s": round(total, 1)}, f, indent=2)
+    if selecting:
+        print(f"[pipeline]   selection (validation flights) {_hms(selecting)}", flush=True)
+    out = {"stages": records, "train_time_s": round(total, 1)}
+    if selecting:
+        out["select_time_s"] = round(selecting, 1)
+    _write_json(os.path.join(root, "summary.json"), out)
     return records

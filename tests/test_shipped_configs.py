@@ -25,6 +25,10 @@ def test_train_configs_load(path):
         assert len(configs) == len(pipeline.stages) >= 1
         for cfg in configs:
             _check_train_config(cfg, path)
+        for stage in pipeline.stages:  # a stage that keeps the best of its seeds flies them on validation scenes
+            if stage.select is not None:
+                ecfg = P.selection_eval_config(stage.name, stage.select)
+                assert ecfg.scenes.seed is not None and ecfg.configurations == [stage.select.configuration]
         return
     _check_train_config(load_train_config(path), path)
 

@@ -15,6 +15,10 @@ seeds, starts or goals differ (different ``--seed`` or scenes), and reports:
 * the exact two-sided McNemar test: under "A and B are equally good" each discordant pair is a fair coin, so
   ``p = min(1, 2 P(X <= min(a_only, b_only)))`` with ``X ~ Binomial(a_only + b_only, 1/2)``.
 
+Trials repeat bit for bit only with the same package versions (``shield_nav.provenance``): when the two sides' manifests
+record different ones, the report names them, since some discordant pairs are then floating-point divergence rather
+than a difference between the rows (docs/evaluation.md, "Reproducing a table").
+
 ``--below-tops`` counts a success only where the flight stayed below the obstacles' tops (the trial's
 ``metrics.flew_over`` is 0): a shield or policy that lets the vehicle climb over the clutter can gain successes that
 way, which the plain comparison would credit (docs/evaluation.md). A trial recorded without the metric is refused.
@@ -34,6 +38,7 @@ import json
 import os
 
 from shield_nav.evaluation import wilson_interval
+from shield_nav.provenance import format_differences, version_differences
 
 __all__ = ["compare", "compare_pooled", "mcnemar_exact", "paired_outcomes"]
 
@@ -72,6 +77,15 @@ def _trials(spec: str, speeds: list[float] | None) -> dict[tuple, dict]:
         raise ValueError(f"no trials of row {row!r} in {out_dir!r}" + (f" at speeds {speeds}" if speeds else "")
                          + f"; its rows: {', '.join(rows)}")  # fmt: skip
     return found
+
+
+def _packages(spec: str) -> dict | None:
+    """The package versions ``OUT_DIR``'s manifest records (None for an output written before they were)."""
+    path = os.path.join(spec.rpartition(":")[0], "manifest.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as fh:
+        return json.load(fh).get("packages")
 
 
 def _succeeded(trial: dict, below_tops: bool, key: tuple) -> bool:
@@ -124,6 +138,7 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
         "b_success": sb / n, "b_interval": list(wilson_interval(sb, n)),
         "a_only": a_only, "b_only": b_only, "p_mcnemar": mcnemar_exact(a_only, b_only),
         "speeds": sorted({p[0][2] for p in pairs}), "below_tops": below_tops,
+        "package_differences": version_differences(_packages(a), _packages(b)),
     }  # fmt: skip
 
 
@@ -159,7 +174,9 @@ def format_report(res: dict) -> str:
         f"A {res['a']}: {pct(res['a_success'])} % [{pct(lo_a)}, {pct(hi_a)}]",
         f"B {res['b']}: {pct(res['b_success'])} % [{pct(lo_b)}, {pct(hi_b)}]",
         f"discordant: A only {res['a_only']}, B only {res['b_only']}; exact McNemar p = {res['p_mcnemar']:.2g}",
-    ])  # fmt: skip
+    ] + ([f"note: flown with different package versions (A / B: {format_differences(diff)}); some discordant pairs "
+          "may be floating-point divergence, not the rows (docs/evaluation.md, 'Reproducing a table')"]
+         if (diff := res.get("package_differences")) else []))  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,6 +42,7 @@ from shield_nav.evaluation.rollout import (
     scene_seed,
     unit_key,
 )
+from shield_nav.provenance import format_differences, package_versions, version_differences
 
 
 def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prepared:
@@ -215,6 +216,12 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
                 "the same command. Use another --out or delete the folder."
             )
+        changed = version_differences(old.get("packages"), package_versions())
+        if changed:
+            print(f"[eval] resuming {out_dir!r} with other package versions than its first units were flown with "
+                  f"({format_differences(changed)}): the units flown from now on may differ trial by trial from "
+                  "what the first environment would have flown (docs/evaluation.md, 'Reproducing a table')",
+                  file=sys.stderr)  # fmt: skip
         return
     manifest = {
         "format": EVAL_FORMAT_VERSION,
@@ -224,6 +231,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
         "git": _git_info(),
         "python": platform.python_version(),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
+        "packages": package_versions(),
         "checkpoints": {k: dataclasses.asdict(v) for k, v in prep.policies.items()},
         "missing_rows": prep.missing,
         **ident,

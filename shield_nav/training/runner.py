@@ -23,6 +23,7 @@ from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, to_dict, to_yaml
 from shield_nav.baselines import EXPERTS
+from shield_nav.provenance import package_versions
 from shield_nav.training.checks import check_files
 from shield_nav.training.config import (
     CHECKPOINT_FORMAT_VERSION,
@@ -48,6 +49,7 @@ class _VersionedSave:
             "tot_timesteps": int(self.logger.tot_timesteps),
             "tot_time": float(self.logger.tot_time),
             "torch_version": torch.__version__,
+            "packages": package_versions(),
             "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
         }
         if hasattr(self.env, "curriculum_levels"):

@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 
+import mujoco
 import numpy as np
 import pytest
 import yaml
@@ -285,6 +286,7 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     with open(os.path.join(out1, "manifest.json")) as f:
         man = json.load(f)
     assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0
+    assert man["packages"]["numpy"] == np.__version__ and man["packages"]["mujoco"] == mujoco.__version__
     # Starts and goals lie in the scene's regions.
     from envs.scenes import make_scene
 
@@ -324,6 +326,24 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     # Another configuration into the same folder is refused instead of mixing results.
     with pytest.raises(E.EvalError, match="different run"):
         E.evaluate(tiny_cfg("seed=5"), out1, progress=False)
+
+
+def test_resume_with_other_package_versions_names_them(tmp_path, monkeypatch, capsys):
+    """A folder first flown with other package versions resumes (the config and checkpoints are the same run), and
+    the versions that changed are named, since the units flown from now on may differ trial by trial."""
+    out = str(tmp_path / "out")
+    E.evaluate(tiny_cfg(), out, progress=False)
+    capsys.readouterr()
+    man_path = os.path.join(out, "manifest.json")
+    with open(man_path) as f:
+        man = json.load(f)
+    E.evaluate(tiny_cfg(), out, progress=False)  # the same versions: nothing to say
+    assert "package versions" not in capsys.readouterr().err
+    man["packages"]["numpy"] = "1.0.0"
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    E.evaluate(tiny_cfg(), out, progress=False)
+    assert f"numpy 1.0.0 / {np.__version__}" in capsys.readouterr().err
 
 
 def test_resume_of_a_folder_written_before_a_config_key_existed(tmp_path, monkeypatch, capsys):

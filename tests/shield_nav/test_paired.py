@@ -122,3 +122,26 @@ def test_below_tops_counts_a_success_over_the_obstacles_as_a_failure(tmp_path, c
     _write(tmp_path / "c", "bare", [s, s, c, c, s])  # an output without the metric
     with pytest.raises(ValueError, match="no metrics.flew_over"):
         compare(a, f"{tmp_path / 'c'}:bare", below_tops=True)
+
+
+def test_report_names_the_packages_the_two_sides_were_flown_with_when_they_differ(tmp_path, capsys):
+    s, c = "success", "collision"
+    _write(tmp_path / "a", "full", [s, c])
+    _write(tmp_path / "b", "full", [s, s])
+    a, b = f"{tmp_path / 'a'}:full", f"{tmp_path / 'b'}:full"
+    # Outputs written before the manifests recorded versions (or without a manifest): nothing is claimed.
+    assert compare(a, b)["package_differences"] == {}
+    man = {"packages": {"python": "3.11.7", "numpy": "2.4.6", "mujoco": "4.0.0", "scipy": "1.17.1"}}
+    (tmp_path / "a" / "manifest.json").write_text(json.dumps(man))
+    assert compare(a, b)["package_differences"] == {}  # only one side knows its versions
+    man["packages"].update(numpy="2.5.2", scipy="1.18.1")
+    (tmp_path / "b" / "manifest.json").write_text(json.dumps(man))
+    res = compare(a, b)
+    assert res["package_differences"] == {"numpy": ["2.4.6", "2.5.2"], "scipy": ["1.17.1", "1.18.1"]}
+    main([a, b])
+    out = capsys.readouterr().out
+    assert "numpy 2.4.6 / 2.5.2, scipy 1.17.1 / 1.18.1" in out and "floating-point" in out
+    # The same versions on both sides: no note.
+    (tmp_path / "a" / "manifest.json").write_text(json.dumps(man))
+    main([a, b])
+    assert "package versions" not in capsys.readouterr().out

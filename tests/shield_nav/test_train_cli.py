@@ -54,6 +54,7 @@ def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_pat
     infos = read_checkpoint_infos(os.path.join(run, "model_1.pt"))
     assert infos["format_version"] == CHECKPOINT_FORMAT_VERSION
     assert infos["config"]["env"]["num_envs"] == 4 and infos["config"]["name"] == "quick"
+    assert infos["packages"]["torch"] == torch.__version__ and infos["packages"]["numpy"] == np.__version__
     assert torch.load(os.path.join(run, "model_1.pt"), weights_only=False)["iter"] == 1
 
     # The exported actor runs in onnxruntime on the env's shapes with an explicit GRU state.

@@ -1,0 +1,62 @@
+"""The package versions a flight or a training run was computed with.
+
+A seeded evaluation repeats trial for trial on one machine with one set of packages. Across package versions it does
+not: numpy, numba/llvmlite, scipy, MuJoCo or the QP solvers may round one operation differently, and a flight near
+the edge of a collision or of the time limit then ends the other way. Measured on the shipped Full policy
+(docs/evaluation.md, "Reproducing a table"): between this project's reference environment (``constraints.txt``) and
+a machine with newer numpy, scipy and torch, 14 of Table II's 160 trials at 3 m/s changed outcome (net 8 flights, 5
+points) and 3-16 of each other cell's 160-400. So every ``eval.py`` manifest and every checkpoint records these
+versions, a resumed evaluation names the ones that changed, and ``python -m shield_nav.paired`` says when the two
+sides were flown with different ones.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import platform
+
+__all__ = ["PACKAGES", "package_versions", "version_differences"]
+
+#: The distributions whose arithmetic a flight or a training step goes through (their PyPI names).
+PACKAGES = (
+    "numpy",
+    "numba",
+    "llvmlite",
+    "scipy",
+    "torch",
+    "mujoco",
+    "qpsolvers",
+    "osqp",
+    "daqp",
+    "quadprog",
+    "onnxruntime",
+    "rsl-rl-lib",
+    "gymnasium",
+)
+
+
+def package_versions(packages: tuple[str, ...] = PACKAGES) -> dict[str, str | None]:
+    """``{"python": ..., name: installed version or None}`` for ``packages``."""
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for name in packages:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def version_differences(a: dict | None, b: dict | None) -> dict[str, list]:
+    """``{name: [a's version, b's version]}`` for every name both records hold with different versions.
+
+    A missing record (an output written before versions were recorded) compares as no difference: unknown is not
+    reported as different.
+    """
+    if not isinstance(a, dict) or not isinstance(b, dict):
+        return {}
+    return {k: [a[k], b[k]] for k in sorted(set(a) & set(b)) if a[k] != b[k]}
+
+
+def format_differences(diff: dict[str, list]) -> str:
+    """``numpy 2.4.6 / 2.5.2, scipy 1.17.1 / 1.18.1`` (empty when there is none)."""
+    return ", ".join(f"{k} {x} / {y}" for k, (x, y) in diff.items())

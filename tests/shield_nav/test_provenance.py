@@ -1,0 +1,39 @@
+"""Package versions recorded with every evaluation and checkpoint (shield_nav.provenance)."""
+
+import platform
+
+import mujoco
+import numpy as np
+import scipy
+import torch
+
+from shield_nav.provenance import PACKAGES, format_differences, package_versions, version_differences
+
+
+def test_package_versions_are_the_imported_modules_own():
+    v = package_versions()
+    assert set(v) == {"python", *PACKAGES}
+    assert v["python"] == platform.python_version()
+    # Each module's own version attribute, read independently of the installed distribution's metadata.
+    assert v["numpy"] == np.__version__ and v["scipy"] == scipy.__version__
+    assert v["torch"] == torch.__version__ and v["mujoco"] == mujoco.__version__
+
+
+def test_a_package_that_is_not_installed_is_none():
+    assert package_versions(("numpy", "no-such-distribution-shield-nav")) == {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "no-such-distribution-shield-nav": None,
+    }
+
+
+def test_version_differences_by_hand():
+    a = {"python": "3.11.7", "numpy": "2.4.6", "scipy": "1.17.1", "daqp": None}
+    b = {"python": "3.12.3", "numpy": "2.4.6", "scipy": "1.18.1", "daqp": "0.11.0", "extra": "1"}
+    diff = version_differences(a, b)
+    # Only names both hold; None against a version is a difference; "extra" is on one side only.
+    assert diff == {"daqp": [None, "0.11.0"], "python": ["3.11.7", "3.12.3"], "scipy": ["1.17.1", "1.18.1"]}
+    assert format_differences(diff) == "daqp None / 0.11.0, python 3.11.7 / 3.12.3, scipy 1.17.1 / 1.18.1"
+    assert version_differences(a, a) == {} and format_differences({}) == ""
+    # An output written before versions were recorded: unknown is not reported as different.
+    assert version_differences(None, b) == {} and version_differences(a, None) == {}

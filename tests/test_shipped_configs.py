@@ -29,6 +29,9 @@ def test_train_configs_load(path):
             if stage.select is not None:
                 ecfg = P.selection_eval_config(stage.name, stage.select)
                 assert ecfg.scenes.seed is not None and ecfg.configurations == [stage.select.configuration]
+        if pipeline.chains > 1:  # so does a pipeline that keeps the best of its chains
+            ecfg = P.selection_eval_config("", pipeline.select, where="chains")
+            assert ecfg.scenes.seed is not None and ecfg.configurations == [pipeline.select.configuration]
         return
     _check_train_config(load_train_config(path), path)
 

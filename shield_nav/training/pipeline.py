@@ -38,6 +38,21 @@ evaluation harness into ``<NN>_<stage>/select_seed_<s>/`` (resumable by unit). T
 over all the eval's trials is kept (a tie keeps the lower seed): its final checkpoint, ``exported/`` and ``params/``
 are copied into ``<NN>_<stage>/``, so a later stage's ``${stage}`` and the stage folder read like a one-run stage's.
 ``<NN>_<stage>/selection.json`` records every candidate's successes per speed and the choice.
+
+**Chains.** Candidates of the last stage share the earlier stages' result (e.g. one depth student). A pipeline may
+instead train its whole chain of stages several times and keep the chain whose last stage flies best::
+
+    name: full_chains
+    chains: 3                             # every stage's seed and env.seed raised by 0, 1, 2
+    select:
+      eval: ../eval/validation_benchmark.yaml
+      configuration: full
+    stages: [...]
+
+Each chain is an ordinary pipeline folder ``chain_<k>/`` (its stages read their own earlier stages' checkpoints, and
+it resumes after a kill); each chain's last stage is flown into ``select_chain_<k>/``, and the kept chain's last
+checkpoint, ``exported/`` and ``params/`` are copied into ``<NN>_<last stage>/`` of the pipeline folder, with
+``selection.json`` beside them.
 """
 
 from __future__ import annotations
@@ -64,7 +79,7 @@ PIPELINE_FILE = "pipeline.yaml"
 STAGE_FILE = "stage.json"
 CANDIDATE_FILE = "candidate.json"
 SELECTION_FILE = "selection.json"
-_PIPELINE_KEYS = {"name", "stages"}
+_PIPELINE_KEYS = {"name", "stages", "chains", "select"}
 _STAGE_KEYS = {"name", "config", "set", "candidates", "select"}
 _SELECT_KEYS = {"eval", "configuration", "set"}
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -106,6 +121,8 @@ class Pipeline:
     name: str
     stages: list[Stage]
     source: str = ""
+    chains: int = 1
+    select: Selection | None = None
 
 
 def _check_name(value: Any, key: str, where: str) -> str:
@@ -170,39 +187,46 @@ def load_pipeline(path: str | os.PathLike) -> Pipeline:
                                       f"stage; earlier: {[s.name for s in stages]}")  # fmt: skip
         candidates, select = _parse_candidates(item, key, where, os.path.dirname(os.path.abspath(src)))
         stages.append(Stage(sname, config_path, list(overrides), candidates, select))
-    return Pipeline(name, stages, src)
+    chains, select = _parse_candidates(raw, "", where, os.path.dirname(os.path.abspath(src)), "chains")
+    return Pipeline(name, stages, src, chains, select)
 
 
-def _parse_candidates(item: dict, key: str, where: str, folder: str) -> tuple[int, Selection | None]:
-    """A stage's ``candidates`` and ``select`` keys, checked by name."""
-    candidates = item.get("candidates", 1)
+def _parse_candidates(
+    item: dict, key: str, where: str, folder: str, count_key: str = "candidates"
+) -> tuple[int, Selection | None]:
+    """A stage's ``candidates`` and ``select`` keys (or the pipeline's ``chains`` and ``select``), checked by name."""
+
+    def k(sub: str) -> str:
+        return f"{key}.{sub}" if key else sub
+
+    candidates = item.get(count_key, 1)
     if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
-        raise ConfigError(f"pipeline key '{key}.candidates' {where}: must be an integer >= 1, got {candidates!r}")
+        raise ConfigError(f"pipeline key '{k(count_key)}' {where}: must be an integer >= 1, got {candidates!r}")
     raw = item.get("select")
     if candidates == 1:
         if raw is not None:
-            raise ConfigError(f"pipeline key '{key}.select' {where}: a selection needs 'candidates' >= 2")
+            raise ConfigError(f"pipeline key '{k('select')}' {where}: a selection needs '{count_key}' >= 2")
         return 1, None
     if not isinstance(raw, dict):
         raise ConfigError(
-            f"pipeline key '{key}.select' {where}: 'candidates: {candidates}' needs a 'select' "
+            f"pipeline key '{k('select')}' {where}: '{count_key}: {candidates}' needs a 'select' "
             "mapping with 'eval' (an eval config on validation scenes) and 'configuration' (its row)"
         )
     unknown = sorted(set(raw) - _SELECT_KEYS)
     if unknown:
-        raise ConfigError(f"pipeline key '{key}.select.{unknown[0]}' {where}: unknown; known: {sorted(_SELECT_KEYS)}")
+        raise ConfigError(f"pipeline key '{k('select')}.{unknown[0]}' {where}: unknown; known: {sorted(_SELECT_KEYS)}")
     path = raw.get("eval")
     if not isinstance(path, str):
-        raise ConfigError(f"pipeline key '{key}.select.eval' {where}: must be a path to an eval config")
+        raise ConfigError(f"pipeline key '{k('select')}.eval' {where}: must be a path to an eval config")
     path = os.path.normpath(os.path.join(folder, path))
     if not os.path.isfile(path):
-        raise ConfigError(f"pipeline key '{key}.select.eval' {where}: no such file {path!r}")
+        raise ConfigError(f"pipeline key '{k('select')}.eval' {where}: no such file {path!r}")
     row = raw.get("configuration")
     if not isinstance(row, str) or not row:
-        raise ConfigError(f"pipeline key '{key}.select.configuration' {where}: must name one eval.py row")
+        raise ConfigError(f"pipeline key '{k('select')}.configuration' {where}: must name one eval.py row")
     overrides = raw.get("set", [])
     if not isinstance(overrides, list) or not all(isinstance(o, str) and "=" in o for o in overrides):
-        raise ConfigError(f"pipeline key '{key}.select.set' {where}: must be a list of 'dotted.key=value' strings")
+        raise ConfigError(f"pipeline key '{k('select')}.set' {where}: must be a list of 'dotted.key=value' strings")
     return candidates, Selection(path, row, list(overrides))
 
 
@@ -269,7 +293,7 @@ def _hms(seconds: float) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
-def selection_eval_config(stage_name: str, select: Selection | dict) -> Any:
+def selection_eval_config(stage_name: str, select: Selection | dict, where: str | None = None) -> Any:
     """The :class:`shield_nav.evaluation.EvalConfig` that flies a stage's candidates, checked before any work.
 
     ``select`` is the pipeline file's :class:`Selection` or the dict a pipeline folder stored. Raises
@@ -278,7 +302,7 @@ def selection_eval_config(stage_name: str, select: Selection | dict) -> Any:
     """
     from shield_nav.evaluation.config import POLICY_CONTROLLERS, EvalConfig, EvalError, load_eval_config, resolve_rows
 
-    where = f"pipeline stage '{stage_name}': select"
+    where = where or f"pipeline stage '{stage_name}': select"
     try:
         if isinstance(select, Selection):
             cfg = load_eval_config(select.eval, select.overrides)
@@ -301,13 +325,24 @@ def selection_eval_config(stage_name: str, select: Selection | dict) -> Any:
     return cfg
 
 
+def _seeded(cfg: TrainConfig, offset: int) -> TrainConfig:
+    """``cfg`` with ``seed`` and ``env.seed`` raised by ``offset``."""
+    if not offset:
+        return cfg
+    return load_train_config(overrides=[f"seed={cfg.seed + offset}", f"env.seed={cfg.env.seed + offset}"], base=cfg)
+
+
 def candidate_configs(cfg: TrainConfig, candidates: int) -> list[tuple[int, TrainConfig]]:
     """(seed, config) of each candidate: the stage's config with ``seed`` and ``env.seed`` raised by 0, 1, ..."""
-    out = []
-    for k in range(candidates):
-        over = [f"seed={cfg.seed + k}", f"env.seed={cfg.env.seed + k}"]
-        out.append((cfg.seed + k, load_train_config(overrides=over, base=cfg)))
-    return out
+    return [(cfg.seed + k, _seeded(cfg, k)) for k in range(candidates)]
+
+
+def chain_dir(root: str, k: int) -> str:
+    """The pipeline folder of chain ``k`` inside a pipeline folder with ``chains``."""
+    return os.path.join(root, f"chain_{k}")
+
+
+_CHAINS_WHERE = "pipeline key 'select' (chains)"
 
 
 def choose(results: Sequence[dict[str, Any]]) -> int:
@@ -331,10 +366,40 @@ def start(pipeline: Pipeline, overrides: Sequence[str] = ()) -> str:
     produced = {final_checkpoint(stage_dir("<pipeline>", i, s), c) for i, (s, c) in pairs}
     check_inputs([s.name for s in pipeline.stages], probe, produced)
     selections = {s.name: selection_eval_config(s.name, s.select) for s in pipeline.stages if s.select is not None}
+    chain_eval = None
+    if pipeline.chains > 1:
+        assert pipeline.select is not None  # load_pipeline refuses chains without a selection
+        chain_eval = selection_eval_config("", pipeline.select, where=_CHAINS_WHERE)
     from shield_nav.training.runner import new_stamped_dir
 
     root = new_stamped_dir(probe[0], pipeline.name)
-    configs = resolve(pipeline, root, overrides)
+    if chain_eval is None:
+        _store(root, pipeline, overrides, selections, 0)
+        return root
+    for k in range(pipeline.chains):
+        os.makedirs(chain_dir(root, k))
+        _store(chain_dir(root, k), pipeline, overrides, selections, k)
+    assert pipeline.select is not None
+    record = {
+        "name": pipeline.name,
+        "source": os.path.relpath(pipeline.source) if pipeline.source else "",
+        "overrides": list(overrides),
+        "chains": pipeline.chains,
+        "select": {
+            "configuration": pipeline.select.configuration,
+            "source": os.path.relpath(pipeline.select.eval),
+            "eval_config": to_dict(chain_eval),
+        },
+        "stages": [s.name for s in pipeline.stages],
+    }
+    with open(os.path.join(root, PIPELINE_FILE), "w", encoding="utf-8") as f:
+        yaml.safe_dump(record, f, sort_keys=False)
+    return root
+
+
+def _store(root: str, pipeline: Pipeline, overrides: Sequence[str], selections: dict[str, Any], offset: int) -> None:
+    """Write ``root/pipeline.yaml``: every stage's config resolved under ``root``, seeds raised by ``offset``."""
+    configs = [_seeded(c, offset) for c in resolve(pipeline, root, overrides)]
     stages = []
     for s, c in zip(pipeline.stages, configs, strict=True):
         entry: dict[str, Any] = {"name": s.name, "config": to_dict(c)}
@@ -350,11 +415,11 @@ def start(pipeline: Pipeline, overrides: Sequence[str] = ()) -> str:
         "name": pipeline.name,
         "source": os.path.relpath(pipeline.source) if pipeline.source else "",
         "overrides": list(overrides),
+        **({"seed_offset": offset} if offset else {}),
         "stages": stages,
     }
     with open(os.path.join(root, PIPELINE_FILE), "w", encoding="utf-8") as f:
         yaml.safe_dump(record, f, sort_keys=False)
-    return root
 
 
 def _relocated(path: str, root: str, stage_dirs: set[str]) -> str:
@@ -380,6 +445,9 @@ def load_stored(root: str, overrides: Sequence[str] = ()) -> tuple[list[str], li
                           "one run, pass its model_<it>.pt)")  # fmt: skip
     with open(path, encoding="utf-8") as f:
         record = yaml.safe_load(f)
+    if "chains" in record:  # every chain is checked; the first one's stages are returned
+        found = [load_stored(chain_dir(root, k), overrides) for k in range(int(record["chains"]))]
+        return found[0]
     names, configs = [], []
     for i, stage in enumerate(record["stages"]):
         runner = stage["config"].get("runner", {})
@@ -465,42 +533,17 @@ def _run_candidates(
             rec = {"seed": seed, **_train_stage(train_fn, ccfg, cdir, clabel, root)}
             _write_json(marker, rec)
         trained.append((seed, cdir, rec))
-    results = []
     t0 = time.monotonic()
-    for seed, cdir, rec in trained:
-        onnx = os.path.join(cdir, "exported", "policy.onnx")
-        if not os.path.isfile(onnx):
-            raise RuntimeError(f"pipeline {label}: candidate seed {seed} has no exported policy {onnx!r} to fly")
-        one = dataclasses.replace(ecfg, checkpoints={**ecfg.checkpoints, policy.policy: onnx})
-        trials = len(one.scene_indices) * one.trials_per_scene * len(one.speeds)
-        print(f"[pipeline] {label} selection: flying candidate seed {seed} as '{row_name}' on {one.name} "
-              f"({trials} trials, {one.workers} worker(s))", flush=True)  # fmt: skip
-        summary = eval_fn(one, os.path.join(run_dir, f"select_seed_{seed}"), (policy.policy,), progress=False)
-        cells = summary["cells"][row_name]
-        per_speed = {v: (c["successes"] if c else 0) for v, c in cells.items()}
-        n_trials = sum(c["n"] for c in cells.values() if c)
-        results.append({"seed": seed, "checkpoint": rec["checkpoint"], "successes": sum(per_speed.values()),
-                        "trials": n_trials, "successes_per_speed": per_speed})  # fmt: skip
-        rates = ", ".join(f"{v} m/s {s}" for v, s in per_speed.items())
-        print(f"[pipeline] {label} selection: seed {seed}: {results[-1]['successes']} of {n_trials} ({rates})",
-              flush=True)  # fmt: skip
+    items = [
+        (seed, cdir, rec["checkpoint"], os.path.join(run_dir, f"select_seed_{seed}")) for seed, cdir, rec in trained
+    ]
+    results = _fly(eval_fn, ecfg, row_name, policy.policy, items, label, "seed")
     best = choose(results)
     chosen_seed, chosen_dir, chosen_rec = trained[best]
     final = final_checkpoint(run_dir, cfg)
-    shutil.copy2(chosen_rec["checkpoint"], final)
-    for sub in ("exported", "params"):
-        if os.path.isdir(os.path.join(chosen_dir, sub)):
-            shutil.copytree(os.path.join(chosen_dir, sub), os.path.join(run_dir, sub), dirs_exist_ok=True)
+    _keep(chosen_rec["checkpoint"], chosen_dir, final, ecfg, entry["select"]["source"], row_name, results,
+          {"chosen_seed": chosen_seed}, "seed")  # fmt: skip
     select_time = round(time.monotonic() - t0, 1)
-    _write_json(os.path.join(run_dir, SELECTION_FILE), {
-        "eval": entry["select"]["source"],
-        "configuration": row_name,
-        "scene_family": ecfg.scenes.family,
-        "scene_seed": ecfg.scenes.seed,
-        "candidates": results,
-        "chosen_seed": chosen_seed,
-        "rule": "most successes over all trials; a tie keeps the lower seed",
-    })  # fmt: skip
     print(f"[pipeline] {label}: keeps seed {chosen_seed} ({results[best]['successes']} of {results[best]['trials']}); "
           f"copied to {final}", flush=True)  # fmt: skip
     return {
@@ -513,6 +556,126 @@ def _run_candidates(
         "chosen_seed": chosen_seed,
         "finished_at": datetime.datetime.now().isoformat(timespec="seconds"),
     }
+
+
+def _fly(
+    eval_fn: Callable[..., dict],
+    ecfg: Any,
+    row_name: str,
+    policy_name: str,
+    items: Sequence[tuple[int, str, str, str]],
+    label: str,
+    what: str,
+) -> list[dict[str, Any]]:
+    """Fly each candidate's exported policy as ``row_name`` on ``ecfg``; its successes per speed.
+
+    ``items``: (id, run folder holding ``exported/policy.onnx``, final checkpoint, flight folder). Flights resume by
+    unit; a flight folder older than its candidate's export (the candidate was retrained) is flown again.
+    """
+    results = []
+    for ident, cdir, ckpt, out in items:
+        onnx = os.path.join(cdir, "exported", "policy.onnx")
+        if not os.path.isfile(onnx):
+            raise RuntimeError(f"pipeline {label}: candidate {what} {ident} has no exported policy {onnx!r} to fly")
+        manifest = os.path.join(out, "manifest.json")
+        if os.path.isfile(manifest) and os.path.getmtime(manifest) < os.path.getmtime(onnx):
+            shutil.rmtree(out)  # flights of an export that has since been replaced
+        one = dataclasses.replace(ecfg, checkpoints={**ecfg.checkpoints, policy_name: onnx})
+        trials = len(one.scene_indices) * one.trials_per_scene * len(one.speeds)
+        print(f"[pipeline] {label} selection: flying candidate {what} {ident} as '{row_name}' on {one.name} "
+              f"({trials} trials, {one.workers} worker(s))", flush=True)  # fmt: skip
+        summary = eval_fn(one, out, (policy_name,), progress=False)
+        cells = summary["cells"][row_name]
+        per_speed = {v: (c["successes"] if c else 0) for v, c in cells.items()}
+        n_trials = sum(c["n"] for c in cells.values() if c)
+        results.append({what: ident, "checkpoint": ckpt, "successes": sum(per_speed.values()),
+                        "trials": n_trials, "successes_per_speed": per_speed})  # fmt: skip
+        rates = ", ".join(f"{v} m/s {s}" for v, s in per_speed.items())
+        print(f"[pipeline] {label} selection: {what} {ident}: {results[-1]['successes']} of {n_trials} ({rates})",
+              flush=True)  # fmt: skip
+    return results
+
+
+def _keep(
+    checkpoint: str,
+    src_dir: str,
+    final: str,
+    ecfg: Any,
+    source: str,
+    row_name: str,
+    results: list[dict[str, Any]],
+    choice: dict[str, Any],
+    what: str,
+) -> None:
+    """Copy the kept checkpoint to ``final``, its ``exported/`` and ``params/`` beside it; write ``selection.json``."""
+    dest = os.path.dirname(final)
+    os.makedirs(dest, exist_ok=True)
+    shutil.copy2(checkpoint, final)
+    for sub in ("exported", "params"):
+        if os.path.isdir(os.path.join(src_dir, sub)):
+            shutil.copytree(os.path.join(src_dir, sub), os.path.join(dest, sub), dirs_exist_ok=True)
+    _write_json(os.path.join(dest, SELECTION_FILE), {
+        "eval": source,
+        "configuration": row_name,
+        "scene_family": ecfg.scenes.family,
+        "scene_seed": ecfg.scenes.seed,
+        "candidates": results,
+        **choice,
+        "rule": f"most successes over all trials; a tie keeps the lower {what}",
+    })  # fmt: skip
+
+
+def _run_chains(
+    root: str,
+    record: dict[str, Any],
+    overrides: Sequence[str],
+    train_fn: Callable[..., str] | None,
+    eval_fn: Callable[..., dict],
+) -> list[dict[str, Any]]:
+    """Run (or continue) every chain, fly each chain's last stage on the validation eval, keep the best chain."""
+    n = int(record["chains"])
+    finished = []
+    for k in range(n):
+        print(f"[pipeline] chain {k + 1}/{n}: {chain_dir(root, k)}", flush=True)
+        finished.append(run(chain_dir(root, k), overrides, train_fn, eval_fn))
+    ecfg = selection_eval_config("", record["select"], where=_CHAINS_WHERE)
+    row_name = record["select"]["configuration"]
+    from shield_nav.evaluation.config import resolve_rows
+
+    policy = resolve_rows(ecfg)[row_name]
+    t0 = time.monotonic()
+    items = [(k, os.path.dirname(recs[-1]["checkpoint"]), recs[-1]["checkpoint"],
+              os.path.join(root, f"select_chain_{k}")) for k, recs in enumerate(finished)]  # fmt: skip
+    results = _fly(eval_fn, ecfg, row_name, policy.policy, items, "chains", "chain")
+    best = choose(results)
+    names = record["stages"]
+    kept_dir = stage_dir(root, len(names) - 1, names[-1])
+    chosen_dir, chosen_ckpt = items[best][1], items[best][2]
+    final = os.path.join(kept_dir, os.path.basename(chosen_ckpt))
+    _keep(chosen_ckpt, chosen_dir, final, ecfg, record["select"]["source"], row_name, results,
+          {"chosen_chain": best}, "chain")  # fmt: skip
+    select_time = round(time.monotonic() - t0, 1)
+    print(f"[pipeline] chains: keeps chain {best} ({results[best]['successes']} of {results[best]['trials']}); "
+          f"copied to {final}", flush=True)  # fmt: skip
+    train_time = sum(r["train_time_s"] for recs in finished for r in recs)
+    inner_select = sum(r.get("select_time_s", 0.0) for recs in finished for r in recs)
+    for k, recs in enumerate(finished):
+        print(
+            f"[pipeline]   chain {k}: {sum(r['train_time_s'] for r in recs) / 60:.1f} min of training, "
+            f"{results[k]['successes']} of {results[k]['trials']}{'  (kept)' if k == best else ''}",
+            flush=True,
+        )
+    print(f"[pipeline]   total training time {_hms(train_time)}; selection (validation flights) "
+          f"{_hms(select_time + inner_select)}", flush=True)  # fmt: skip
+    _write_json(os.path.join(root, "summary.json"), {
+        "chains": [{"chain": k, "stages": recs, "train_time_s": round(sum(r["train_time_s"] for r in recs), 1)}
+                   for k, recs in enumerate(finished)],
+        "chosen_chain": best,
+        "checkpoint": final,
+        "train_time_s": round(train_time, 1),
+        "select_time_s": round(select_time + inner_select, 1),
+    })  # fmt: skip
+    return [*finished[best][:-1], {**finished[best][-1], "checkpoint": final, "chosen_chain": best}]
 
 
 def run(
@@ -534,9 +697,12 @@ def run(
     train_fn = train if train_fn is None else train_fn
     if eval_fn is None:
         from shield_nav.evaluation import evaluate as eval_fn
-    names, configs = load_stored(root, overrides)
     with open(os.path.join(root, PIPELINE_FILE), encoding="utf-8") as f:
-        entries = yaml.safe_load(f)["stages"]
+        stored = yaml.safe_load(f)
+    if "chains" in stored:
+        return _run_chains(root, stored, overrides, train_fn, eval_fn)
+    names, configs = load_stored(root, overrides)
+    entries = stored["stages"]
     records = []
     for i, (name, cfg, entry) in enumerate(zip(names, configs, entries, strict=True)):
         run_dir = stage_dir(root, i, name)

@@ -281,3 +281,88 @@ def test_bad_selections_fail_by_key_before_any_folder(tmp_path):
     res = run_train(["--config", recipe, "--log-dir", str(root)], timeout=120)
     assert res.returncode == 2 and "pipeline stage 'a': select: unknown configuration 'fulll'" in res.stderr
     assert not root.exists()
+
+
+def test_chains_train_every_stage_per_seed_and_keep_the_chain_that_flies_best(tmp_path):
+    """Two chains of two stages: each chain's second stage starts from its own first stage; each chain's last stage
+    is flown on a validation eval; the pipeline folder holds the kept chain's policy; a re-run retrains nothing."""
+    evalcfg = _pick_eval(tmp_path, seed=1150000)
+    recipe = write_pipeline(tmp_path, {
+        "name": "chained",
+        "chains": 2,
+        "select": {"eval": evalcfg, "configuration": "dijkstra_cbf", "set": ["workers=1"]},
+        "stages": [
+            {"name": "first", "config": QUICK, "set": [*TINY, "max_iterations=1"]},
+            {"name": "second", "config": QUICK, "set": [*TINY, "max_iterations=2", "runner.actor_init=${first}"]},
+        ],
+    })  # fmt: skip
+    root = str(tmp_path / "logs")
+    res = run_train(["--config", recipe, "--log-dir", root])
+    assert res.returncode == 0, res.stderr[-3000:]
+    (folder,) = os.listdir(os.path.join(root, "quick"))
+    top = os.path.join(root, "quick", folder)
+    assert sorted(os.listdir(top)) == ["01_second", "chain_0", "chain_1", "pipeline.yaml", "select_chain_0",
+                                       "select_chain_1", "summary.json"]  # fmt: skip
+    for k in (0, 1):
+        chain = os.path.join(top, f"chain_{k}")
+        # every stage of chain k ran with seed k, and its second stage started from its own first stage
+        for stage, it in (("00_first", 0), ("01_second", 1)):
+            ck = torch.load(os.path.join(chain, stage, f"model_{it}.pt"), weights_only=False)
+            assert (ck["infos"]["config"]["seed"], ck["infos"]["config"]["env"]["seed"]) == (k, k)
+        assert f"actor initialised from {os.path.join(chain, '00_first', 'model_0.pt')}" in res.stdout
+    a, b = (torch.load(os.path.join(top, f"chain_{k}", "01_second", "model_1.pt"), weights_only=False)
+            for k in (0, 1))  # fmt: skip
+    assert any(not torch.equal(a["actor_state_dict"][n], b["actor_state_dict"][n]) for n in a["actor_state_dict"])
+    counts = []
+    for k in (0, 1):
+        with open(os.path.join(top, f"select_chain_{k}", "trials.json")) as f:
+            counts.append(sum(t["outcome"] == "success" for t in json.load(f)))
+    kept_dir = os.path.join(top, "01_second")
+    with open(os.path.join(kept_dir, "selection.json")) as f:
+        sel = json.load(f)
+    assert [(c["chain"], c["successes"], c["trials"]) for c in sel["candidates"]] == [(0, counts[0], 2),
+                                                                                      (1, counts[1], 2)]  # fmt: skip
+    kept = 1 if counts[1] > counts[0] else 0
+    assert sel["chosen_chain"] == kept and f"keeps chain {kept}" in res.stdout
+    for rel in ("model_1.pt", os.path.join("exported", "policy.onnx")):
+        with open(os.path.join(top, f"chain_{kept}", "01_second", rel), "rb") as f, \
+                open(os.path.join(kept_dir, rel), "rb") as g:  # fmt: skip
+            assert f.read() == g.read()
+    with open(os.path.join(top, "summary.json")) as f:
+        summary = json.load(f)
+    assert summary["chosen_chain"] == kept and summary["checkpoint"] == os.path.join(kept_dir, "model_1.pt")
+    assert [[r["stage"] for r in c["stages"]] for c in summary["chains"]] == [["first", "second"]] * 2
+    assert summary["train_time_s"] > 0 and summary["select_time_s"] > 0
+
+    # Resumed after it finished: every stage is skipped, the flights are read back, nothing is retrained.
+    before = os.path.getmtime(os.path.join(top, "chain_1", "01_second", "model_1.pt"))
+    res = run_train(["--resume", top])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("finished before, skipped") == 4
+    assert res.stdout.count("resuming: 1/1 units already") == 2
+    assert os.path.getmtime(os.path.join(top, "chain_1", "01_second", "model_1.pt")) == before
+
+
+def test_bad_chains_fail_by_key_before_any_folder(tmp_path):
+    root = tmp_path / "logs"
+    good = {"eval": _pick_eval(tmp_path, seed=1150000), "configuration": "full"}
+    body = {"name": "x", "stages": [{"name": "a", "config": QUICK}]}
+    for extra, expected in [
+        ({"chains": 0}, "'chains'"),
+        ({"chains": True}, "'chains'"),
+        ({"chains": 2}, "'chains: 2' needs a 'select'"),
+        ({"select": good}, "a selection needs 'chains' >= 2"),
+        ({"chains": 2, "select": {**good, "rows": 1}}, "'select.rows'"),
+        ({"chains": 2, "select": {**good, "eval": "nope.yaml"}}, "'select.eval'"),
+    ]:
+        with pytest.raises(ConfigError, match=expected):
+            pipeline.load_pipeline(write_pipeline(tmp_path, {**body, **extra}))
+    for select, expected in [
+        ({**good, "configuration": "oracle"}, "not a trained policy"),
+        ({**good, "eval": _pick_eval(tmp_path)}, "held-out test scenes"),
+    ]:
+        recipe = write_pipeline(tmp_path, {**body, "chains": 2, "select": select})
+        with pytest.raises(ConfigError, match=r"pipeline key 'select' \(chains\)") as err:
+            pipeline.start(pipeline.load_pipeline(recipe), [f"log_root={root}"])
+        assert expected in str(err.value)
+        assert not root.exists()

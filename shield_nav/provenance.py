@@ -1,13 +1,10 @@
 """The package versions a flight or a training run was computed with.
 
-A seeded evaluation repeats trial for trial on one machine with one set of packages. Across package versions it does
+A seeded evaluation repeats trial for trial on one machine with one set of packages. Across package versions it need
 not: numpy, numba/llvmlite, scipy, MuJoCo or the QP solvers may round one operation differently, and a flight near
-the edge of a collision or of the time limit then ends the other way. Measured on the shipped Full policy
-(docs/evaluation.md, "Reproducing a table"): between this project's reference environment (``constraints.txt``) and
-a machine with newer numpy, scipy and torch, 14 of Table II's 160 trials at 3 m/s changed outcome (net 8 flights, 5
-points) and 3-16 of each other cell's 160-400. So every ``eval.py`` manifest and every checkpoint records these
-versions, a resumed evaluation names the ones that changed, and ``python -m shield_nav.paired`` says when the two
-sides were flown with different ones.
+the edge of a collision or of the time limit then ends the other way (how often: docs/evaluation.md, "Reproducing a
+table"). So every ``eval.py`` manifest and every checkpoint records these versions, a resumed evaluation names the
+ones that changed, and ``python -m shield_nav.paired`` says when its two sides were flown with different ones.
 """
 
 from __future__ import annotations

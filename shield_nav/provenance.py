@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 
-__all__ = ["PACKAGES", "package_versions", "version_differences"]
+__all__ = ["PACKAGES", "cpu_model", "package_versions", "version_differences"]
 
 #: The distributions whose arithmetic a flight or a training step goes through (their PyPI names).
 PACKAGES = (
@@ -41,6 +41,21 @@ def package_versions(packages: tuple[str, ...] = PACKAGES) -> dict[str, str | No
         except importlib.metadata.PackageNotFoundError:
             out[name] = None
     return out
+
+
+def cpu_model() -> str:
+    """The processor's model name (``/proc/cpuinfo`` on Linux; ``platform.processor()`` elsewhere, maybe empty).
+
+    numpy and MuJoCo pick SIMD kernels by processor, so it belongs with the package versions.
+    """
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
 
 
 def version_differences(a: dict | None, b: dict | None) -> dict[str, list]:

@@ -42,7 +42,7 @@ from shield_nav.evaluation.rollout import (
     scene_seed,
     unit_key,
 )
-from shield_nav.provenance import format_differences, package_versions, version_differences
+from shield_nav.provenance import cpu_model, format_differences, package_versions, version_differences
 
 
 def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prepared:
@@ -231,6 +231,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
         "git": _git_info(),
         "python": platform.python_version(),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
+        "cpu": cpu_model(),
         "packages": package_versions(),
         "checkpoints": {k: dataclasses.asdict(v) for k, v in prep.policies.items()},
         "missing_rows": prep.missing,

@@ -287,6 +287,7 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
         man = json.load(f)
     assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0
     assert man["packages"]["numpy"] == np.__version__ and man["packages"]["mujoco"] == mujoco.__version__
+    assert isinstance(man["cpu"], str)
     # Starts and goals lie in the scene's regions.
     from envs.scenes import make_scene
 

@@ -7,7 +7,7 @@ import numpy as np
 import scipy
 import torch
 
-from shield_nav.provenance import PACKAGES, format_differences, package_versions, version_differences
+from shield_nav.provenance import PACKAGES, cpu_model, format_differences, package_versions, version_differences
 
 
 def test_package_versions_are_the_imported_modules_own():
@@ -37,3 +37,15 @@ def test_version_differences_by_hand():
     assert version_differences(a, a) == {} and format_differences({}) == ""
     # An output written before versions were recorded: unknown is not reported as different.
     assert version_differences(None, b) == {} and version_differences(a, None) == {}
+
+
+def test_cpu_model_is_the_first_model_name_of_proc_cpuinfo():
+    try:
+        with open("/proc/cpuinfo") as f:
+            names = [ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")]
+    except OSError:
+        names = []
+    if names:
+        assert cpu_model() == names[0] != ""
+    else:  # not Linux: whatever the platform module says, a string
+        assert cpu_model() == platform.processor()

@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 
-__all__ = ["PACKAGES", "cpu_model", "package_versions", "version_differences"]
+__all__ = ["PACKAGES", "cpu_model", "format_differences", "package_versions", "version_differences"]
 
 #: The distributions whose arithmetic a flight or a training step goes through (their PyPI names).
 PACKAGES = (

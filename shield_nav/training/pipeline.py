@@ -379,22 +379,22 @@ def start(pipeline: Pipeline, overrides: Sequence[str] = ()) -> str:
     for k in range(pipeline.chains):
         os.makedirs(chain_dir(root, k))
         _store(chain_dir(root, k), pipeline, overrides, selections, k)
-    assert pipeline.select is not None
     record = {
         "name": pipeline.name,
         "source": os.path.relpath(pipeline.source) if pipeline.source else "",
         "overrides": list(overrides),
         "chains": pipeline.chains,
-        "select": {
-            "configuration": pipeline.select.configuration,
-            "source": os.path.relpath(pipeline.select.eval),
-            "eval_config": to_dict(chain_eval),
-        },
+        "select": _select_record(pipeline.select, chain_eval),
         "stages": [s.name for s in pipeline.stages],
     }
     with open(os.path.join(root, PIPELINE_FILE), "w", encoding="utf-8") as f:
         yaml.safe_dump(record, f, sort_keys=False)
     return root
+
+
+def _select_record(select: Selection, ecfg: Any) -> dict[str, Any]:
+    """How a pipeline folder stores a selection: its row, the eval file it came from and the resolved eval config."""
+    return {"configuration": select.configuration, "source": os.path.relpath(select.eval), "eval_config": to_dict(ecfg)}
 
 
 def _store(root: str, pipeline: Pipeline, overrides: Sequence[str], selections: dict[str, Any], offset: int) -> None:
@@ -405,11 +405,7 @@ def _store(root: str, pipeline: Pipeline, overrides: Sequence[str], selections: 
         entry: dict[str, Any] = {"name": s.name, "config": to_dict(c)}
         if s.select is not None:
             entry["candidates"] = s.candidates
-            entry["select"] = {
-                "configuration": s.select.configuration,
-                "source": os.path.relpath(s.select.eval),
-                "eval_config": to_dict(selections[s.name]),
-            }
+            entry["select"] = _select_record(s.select, selections[s.name])
         stages.append(entry)
     record = {
         "name": pipeline.name,

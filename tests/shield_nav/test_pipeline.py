@@ -28,6 +28,14 @@ def run_train(args, timeout=300):
                           timeout=timeout)  # fmt: skip
 
 
+def run_pipeline(recipe, root):
+    """``train.py --config recipe`` under ``root``: (the finished process, its one pipeline folder's name and path)."""
+    res = run_train(["--config", recipe, "--log-dir", root])
+    assert res.returncode == 0, res.stderr[-3000:]
+    (folder,) = os.listdir(os.path.join(root, "quick"))
+    return res, folder, os.path.join(root, "quick", folder)
+
+
 def test_two_stages_run_in_sequence_and_resume_skips_the_finished_one(tmp_path):
     """Stage 2 starts from stage 1's final checkpoint; a resumed pipeline skips stage 1 and continues stage 2."""
     recipe = write_pipeline(tmp_path, {
@@ -40,10 +48,7 @@ def test_two_stages_run_in_sequence_and_resume_skips_the_finished_one(tmp_path):
         ],
     })  # fmt: skip
     root = str(tmp_path / "logs")
-    res = run_train(["--config", recipe, "--log-dir", root])
-    assert res.returncode == 0, res.stderr[-3000:]
-    (folder,) = os.listdir(os.path.join(root, "quick"))
-    top = os.path.join(root, "quick", folder)
+    res, folder, top = run_pipeline(recipe, root)
     assert folder.endswith("_two") and sorted(os.listdir(top)) == ["00_first", "01_second", "pipeline.yaml",
                                                                     "summary.json"]  # fmt: skip
     first = os.path.join(top, "00_first", "model_1.pt")
@@ -191,10 +196,7 @@ def test_candidates_train_by_seed_fly_validation_and_the_best_is_kept(tmp_path):
                     "select": {"eval": evalcfg, "configuration": "dijkstra_cbf", "set": ["workers=1"]}}],
     })  # fmt: skip
     root = str(tmp_path / "logs")
-    res = run_train(["--config", recipe, "--log-dir", root])
-    assert res.returncode == 0, res.stderr[-3000:]
-    (folder,) = os.listdir(os.path.join(root, "quick"))
-    top = os.path.join(root, "quick", folder)
+    res, folder, top = run_pipeline(recipe, root)
     stage = os.path.join(top, "00_ppo")
     assert {"seed_0", "seed_1", "select_seed_0", "select_seed_1", "selection.json", "stage.json", "model_1.pt",
             "exported", "params"} <= set(os.listdir(stage))  # fmt: skip
@@ -297,10 +299,7 @@ def test_chains_train_every_stage_per_seed_and_keep_the_chain_that_flies_best(tm
         ],
     })  # fmt: skip
     root = str(tmp_path / "logs")
-    res = run_train(["--config", recipe, "--log-dir", root])
-    assert res.returncode == 0, res.stderr[-3000:]
-    (folder,) = os.listdir(os.path.join(root, "quick"))
-    top = os.path.join(root, "quick", folder)
+    res, folder, top = run_pipeline(recipe, root)
     assert sorted(os.listdir(top)) == ["01_second", "chain_0", "chain_1", "pipeline.yaml", "select_chain_0",
                                        "select_chain_1", "summary.json"]  # fmt: skip
     for k in (0, 1):

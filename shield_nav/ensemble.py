@@ -20,14 +20,13 @@ import glob
 import json
 import os
 import re
-import warnings
 
 import torch
 import torch.nn as nn
 
 from envs.config import to_dict, to_yaml
 from shield_nav.evaluation.policies import POLICY_ENV_SECTIONS, _sha256
-from shield_nav.models import ExportedDepthGRU
+from shield_nav.models import ExportedDepthGRU, export_module
 
 __all__ = ["ExportedEnsemble", "build_ensemble", "member_checkpoint"]
 
@@ -131,19 +130,10 @@ def build_ensemble(paths: list[str], out: str) -> str:
                 f"ensemble member {files[k]!r} was trained with other env sections {diff} than {files[0]!r}"
             )
     ens = ExportedEnsemble(members)
-    ens.eval()
     os.makedirs(os.path.join(out, "params"), exist_ok=True)
     with open(os.path.join(out, "params", "config.yaml"), "w", encoding="utf-8") as fh:
         fh.write(to_yaml(cfgs[0]))
-    torch.jit.script(ens).save(os.path.join(out, "policy.pt"))
-    dynamic = {name: {0: "batch"} for name in ens.input_names[:-1]}
-    dynamic.update({"h_in": {1: "batch"}, "actions": {0: "batch"}, "h_out": {1: "batch"}})
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*with a variable length with GRU.*")
-        warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
-        torch.onnx.export(ens, ens.get_dummy_inputs(), os.path.join(out, "policy.onnx"), export_params=True,
-                          opset_version=18, input_names=ens.input_names, output_names=ens.output_names,
-                          dynamic_axes=dynamic, dynamo=False)  # fmt: skip
+    export_module(ens, out)
     names = sorted(f for f in os.listdir(out) if os.path.isfile(os.path.join(out, f)) and f != "meta.json")
     meta = {"kind": "ensemble", "members": [os.path.abspath(f) for f in files],
             "member_sha256": [_sha256(f) for f in files],

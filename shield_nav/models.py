@@ -38,6 +38,7 @@ __all__ = [
     "ExpertTeacher",
     "ExportedDepthGRU",
     "HypothesisSelect",
+    "export_module",
     "export_policy",
     "expand_single_head",
 ]
@@ -479,17 +480,28 @@ def export_policy(
     The ONNX graph has inputs ``obs (B, S)``, ``<depth group> (B, C, H, W)``, ``h_in (L, B, Hd)`` and outputs
     ``actions (B, A)``, ``h_out (L, B, Hd)`` (opset 18, TorchScript-based exporter, which handles ``nn.GRU``).
     """
+    return export_module(model.as_onnx(verbose=False), out_dir, jit_name, onnx_name)
+
+
+def export_module(
+    exp: nn.Module, out_dir: str, jit_name: str = "policy.pt", onnx_name: str = "policy.onnx"
+) -> dict[str, str]:
+    """Write the TorchScript and ONNX files of an export module; return their paths.
+
+    ``exp``: ``forward(obs, depth, h_in) -> (actions, h_out)`` with ``input_names``, ``output_names`` and
+    ``get_dummy_inputs``, e.g. :class:`ExportedDepthGRU` or :class:`shield_nav.ensemble.ExportedEnsemble`.
+    """
     os.makedirs(out_dir, exist_ok=True)
     jit_path = os.path.join(out_dir, jit_name)
     onnx_path = os.path.join(out_dir, onnx_name)
-    torch.jit.script(model.as_jit()).save(jit_path)
-    exp = model.as_onnx(verbose=False)
     exp.eval()
+    torch.jit.script(exp).save(jit_path)
     dynamic = {name: {0: "batch"} for name in exp.input_names[:-1]}
     dynamic.update({"h_in": {1: "batch"}, "actions": {0: "batch"}, "h_out": {1: "batch"}})
     with torch.no_grad(), warnings.catch_warnings():
         # The exporter warns about GRU batch sizes unless h0 is a graph input; here it is (h_in).
         warnings.filterwarnings("ignore", message=".*with a variable length with GRU.*")
+        warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
         torch.onnx.export(
             exp,
             exp.get_dummy_inputs(),

@@ -18,7 +18,6 @@ import time
 import warnings
 from typing import Any
 
-import numpy as np
 import yaml
 
 from envs.config import stored_config, to_dict
@@ -42,6 +41,7 @@ from shield_nav.evaluation.rollout import (
     scene_seed,
     unit_key,
 )
+from shield_nav.jsonio import json_default, write_json
 from shield_nav.provenance import cpu_model, format_differences, package_versions, version_differences
 
 
@@ -148,7 +148,7 @@ def _identity(prep: Prepared) -> dict:
 
 def _plain(x: Any) -> Any:
     """``x`` as the manifest's JSON holds it."""
-    return json.loads(json.dumps(x, sort_keys=True, default=_json_default))
+    return json.loads(json.dumps(x, sort_keys=True, default=json_default))
 
 
 def _added_default_keys(old: Any, new: Any, default: Any, path: str = "") -> list[str] | None:
@@ -174,22 +174,6 @@ def _added_default_keys(old: Any, new: Any, default: Any, path: str = "") -> lis
             return None
         added += sub
     return added
-
-
-def _write_json(path: str, data: Any) -> None:
-    """Atomic write (tmp + rename): a crash never leaves a half-written file that resume would trust."""
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=1, default=_json_default)
-    os.replace(tmp, path)
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
 
 
 def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> None:
@@ -237,7 +221,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
         "missing_rows": prep.missing,
         **ident,
     }
-    _write_json(man_path, manifest)
+    write_json(man_path, manifest)
     with open(os.path.join(out_dir, "config.yaml"), "w") as f:
         yaml.safe_dump(to_dict(prep.cfg), f, sort_keys=False)
 
@@ -270,7 +254,7 @@ def evaluate(
                desc=cfg.name, file=sys.stderr)  # fmt: skip
 
     def finish(res: dict) -> None:
-        _write_json(os.path.join(unit_dir, res["key"] + ".json"), res)
+        write_json(os.path.join(unit_dir, res["key"] + ".json"), res)
         bar.update(len(res["trials"]))
         s = res["summary"]
         bar.set_postfix_str(f"{res['row']} s{res['scene']} {res['speed']:g}m/s SR {100 * s['success_rate']:.0f}%")
@@ -378,8 +362,8 @@ def write_outputs(prep: Prepared, out_dir: str, units: list[UnitSpec]) -> dict:
     with open(os.path.join(out_dir, "table.tex"), "w") as f:
         f.write(latex_table(prep, summary) + "\n")
     trials = [{k: v for k, v in t.items() if k != "traj"} for u in results for t in u["trials"]]
-    _write_json(os.path.join(out_dir, "trials.json"), trials)
-    _write_json(os.path.join(out_dir, "summary.json"), summary)
+    write_json(os.path.join(out_dir, "trials.json"), trials)
+    write_json(os.path.join(out_dir, "summary.json"), summary)
     summary["markdown"] = md
     summary["paper_table"] = paper_table(prep, summary)
     summary["header"] = header

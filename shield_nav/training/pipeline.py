@@ -73,6 +73,7 @@ from typing import Any
 import yaml
 
 from envs.config import ConfigError, stored_config, to_dict
+from shield_nav.jsonio import write_json
 from shield_nav.training.config import TrainConfig, load_train_config
 
 PIPELINE_FILE = "pipeline.yaml"
@@ -488,13 +489,6 @@ def _train_stage(train_fn: Callable[..., str], cfg: TrainConfig, run_dir: str, l
     }
 
 
-def _write_json(path: str, data: Any) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)  # a kill never leaves a half-written marker
-
-
 def _run_candidates(
     train_fn: Callable[..., str],
     eval_fn: Callable[..., dict],
@@ -527,7 +521,7 @@ def _run_candidates(
             if os.path.isdir(stale):  # flights of a checkpoint that is being replaced (a kill before its marker)
                 shutil.rmtree(stale)
             rec = {"seed": seed, **_train_stage(train_fn, ccfg, cdir, clabel, root)}
-            _write_json(marker, rec)
+            write_json(marker, rec)
         trained.append((seed, cdir, rec))
     t0 = time.monotonic()
     items = [
@@ -610,7 +604,7 @@ def _keep(
     for sub in ("exported", "params"):
         if os.path.isdir(os.path.join(src_dir, sub)):
             shutil.copytree(os.path.join(src_dir, sub), os.path.join(dest, sub), dirs_exist_ok=True)
-    _write_json(os.path.join(dest, SELECTION_FILE), {
+    write_json(os.path.join(dest, SELECTION_FILE), {
         "eval": source,
         "configuration": row_name,
         "scene_family": ecfg.scenes.family,
@@ -663,7 +657,7 @@ def _run_chains(
         )
     print(f"[pipeline]   total training time {_hms(train_time)}; selection (validation flights) "
           f"{_hms(select_time + inner_select)}", flush=True)  # fmt: skip
-    _write_json(os.path.join(root, "summary.json"), {
+    write_json(os.path.join(root, "summary.json"), {
         "chains": [{"chain": k, "stages": recs, "train_time_s": round(sum(r["train_time_s"] for r in recs), 1)}
                    for k, recs in enumerate(finished)],
         "chosen_chain": best,
@@ -713,7 +707,7 @@ def run(
             record = {"stage": name, **_run_candidates(train_fn, eval_fn, root, label, name, cfg, run_dir, entry)}
         else:
             record = {"stage": name, **_train_stage(train_fn, cfg, run_dir, label, root)}
-        _write_json(marker, record)
+        write_json(marker, record)
         records.append(record)
     total = sum(r["train_time_s"] for r in records)
     selecting = sum(r.get("select_time_s", 0.0) for r in records)
@@ -728,5 +722,5 @@ def run(
     out = {"stages": records, "train_time_s": round(total, 1)}
     if selecting:
         out["select_time_s"] = round(selecting, 1)
-    _write_json(os.path.join(root, "summary.json"), out)
+    write_json(os.path.join(root, "summary.json"), out)
     return records

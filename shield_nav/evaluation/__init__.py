@@ -29,8 +29,10 @@ flags), :mod:`~shield_nav.evaluation.policies` (ONNX / TorchScript actors, privi
 :mod:`~shield_nav.evaluation.metrics` (per-trial metrics, aggregation, Wilson intervals),
 :mod:`~shield_nav.evaluation.rollout` (pinned trials, one unit's flights), :mod:`~shield_nav.evaluation.run`
 (prepare, workers, resume, outputs), :mod:`~shield_nav.evaluation.report` (tables),
-:mod:`~shield_nav.evaluation.plots` (figures) and :mod:`~shield_nav.evaluation.video`. Everything public is
-re-exported here.
+:mod:`~shield_nav.evaluation.plots` (figures), :mod:`~shield_nav.evaluation.video`,
+:mod:`~shield_nav.evaluation.paper` (the paper's Tables I and II as numbers) and
+:mod:`~shield_nav.evaluation.figure` (our rows beside the paper's, ``python -m shield_nav.evaluation.figure``).
+Everything public is re-exported here.
 """
 
 from envs.config import ConfigError

@@ -1,0 +1,162 @@
+"""Our rows beside the paper's: success rate and realised speed against target speed, for Tables I and II.
+
+``python -m shield_nav.evaluation.figure --table1 OUT[:ROW,ROW] [...] --table2 OUT[:ROW,ROW] [...] --out PNG``
+
+Each ``OUT`` is an ``eval.py`` output folder (its ``summary.json``); ``:ROW,ROW`` keeps only those rows, otherwise
+every row of the folder is drawn. Rows from several folders are merged (a row in two folders is refused: which one
+would be the table's?), and an unfinished run is refused, so a figure never shows part of a table. One column of
+panels per table: success rate with its 95 % Wilson interval on top, the mean realised speed of the successful flights
+below (with the target speed as a dashed line). Where a row reproduces one of the paper's (``distance``,
+``dijkstra``, ``dijkstra_cbf``, ``full``) the paper's numbers (:mod:`shield_nav.evaluation.paper`) are drawn dashed
+in the same colour; ``--paper-methods`` adds the paper's other Table II methods (default: DiffPhys, its strongest).
+The README's figure is made this way (docs/results.md gives the command).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from shield_nav.evaluation.paper import PAPER_SPEEDS, PAPER_TABLE_I, PAPER_TABLE_II
+from shield_nav.evaluation.plots import _plt
+
+__all__ = ["load_rows", "main", "plot_tables", "row_series"]
+
+#: Fixed colours, so a row looks the same in every panel and every figure.
+_COLOURS = {
+    "distance": "tab:blue",
+    "dijkstra": "tab:orange",
+    "dijkstra_cbf": "tab:green",
+    "full": "tab:red",
+    "expert": "0.25",
+}
+_ORDER = ("distance", "dijkstra", "dijkstra_cbf", "full", "expert")
+
+
+def load_rows(specs: list[str]) -> dict[str, dict]:
+    """Read ``OUT[:ROW,ROW]`` specs into ``{row: {"label", "cells", "source"}}``, cells keyed by speed (``"9"``)."""
+    rows: dict[str, dict] = {}
+    for spec in specs:
+        out, _, names = spec.partition(":")
+        path = os.path.join(out, "summary.json")
+        if not os.path.isfile(path):
+            raise ValueError(f"{spec!r}: no {path} (not an eval.py output folder, or the run has not finished)")
+        with open(path) as f:
+            summary = json.load(f)
+        done, total = summary.get("units_done"), summary.get("units_total")
+        if done is not None and total is not None and done < total:
+            raise ValueError(f"{spec!r}: the run is unfinished ({done} of {total} units); resume it first")
+        wanted = [n for n in names.split(",") if n] if names else list(summary["rows"])
+        for name in wanted:
+            if name not in summary["rows"]:
+                raise ValueError(f"{spec!r}: no row {name!r} in {path} (rows: {', '.join(summary['rows'])})")
+            if name in rows:
+                raise ValueError(f"row {name!r} is in both {rows[name]['source']} and {out}: name one with OUT:ROW")
+            label = summary["rows"][name].get("label") or name
+            rows[name] = {"label": label, "cells": summary["cells"][name], "source": out}
+    return rows
+
+
+def row_series(row: dict) -> dict[str, np.ndarray]:
+    """The plotted arrays of one row: speeds, success rate and its interval (%), realised speed (NaN: no success)."""
+    keys = sorted(row["cells"], key=float)
+    cells = [row["cells"][k] for k in keys]
+    return {
+        "speed": np.array([float(k) for k in keys]),
+        "sr": np.array([100.0 * c["success_rate"] for c in cells]),
+        "lo": np.array([100.0 * c["sr_lo"] for c in cells]),
+        "hi": np.array([100.0 * c["sr_hi"] for c in cells]),
+        "vel": np.array([np.nan if c.get("vel") is None else float(c["vel"]) for c in cells]),
+        "n": np.array([int(c["n"]) for c in cells]),
+    }
+
+
+def _ordered(rows: dict[str, dict]) -> list[str]:
+    return [n for n in _ORDER if n in rows] + [n for n in rows if n not in _ORDER]
+
+
+def plot_tables(tables: dict[str, dict[str, dict]], path: str, paper_methods: tuple[str, ...] = ("diffphys",)) -> None:
+    """Draw ``{"Table I": rows, "Table II": rows}`` (either may be absent) with the paper's rows, to ``path``."""
+    unknown = [m for m in paper_methods if m not in PAPER_TABLE_II]
+    if unknown:
+        raise ValueError(f"--paper-methods: unknown {', '.join(unknown)} (known: {', '.join(PAPER_TABLE_II)})")
+    if not tables:
+        raise ValueError("nothing to draw: give --table1 and/or --table2")
+    plt = _plt()
+    fig, axes = plt.subplots(2, len(tables), figsize=(5.6 * len(tables), 7.4), squeeze=False, sharex=True)
+    others = iter(f"C{k}" for k in range(4, 10))
+    colours = dict(_COLOURS)
+    for col, (title, rows) in enumerate(tables.items()):
+        paper = PAPER_TABLE_I if title == "Table I" else PAPER_TABLE_II
+        ax_sr, ax_v = axes[0, col], axes[1, col]
+        trials = set()
+        for name in _ordered(rows):
+            colour = colours.setdefault(name, next(others, "k"))
+            s = row_series(rows[name])
+            trials.update(s["n"].tolist())
+            err = np.maximum(np.stack((s["sr"] - s["lo"], s["hi"] - s["sr"])), 0.0)
+            label = rows[name]["label"]
+            ax_sr.errorbar(s["speed"], s["sr"], yerr=err, color=colour, marker="o", capsize=3, label=label)
+            ax_v.plot(s["speed"], s["vel"], color=colour, marker="o", label=label)
+            if name in paper:
+                _paper_lines(ax_sr, ax_v, paper[name], colour)
+        if title == "Table II":
+            for method in paper_methods:
+                if method not in rows:
+                    _paper_lines(ax_sr, ax_v, PAPER_TABLE_II[method], "0.6")
+        n = "/".join(str(t) for t in sorted(trials))
+        ax_sr.set_title(f"{title}: success rate ({n} trials per cell, 95 % Wilson)", fontsize=9)
+        ax_sr.set_ylabel("success rate [%]")
+        ax_sr.set_ylim(-3, 103)
+        ax_v.plot(PAPER_SPEEDS, PAPER_SPEEDS, "k:", lw=0.8, label="target speed")
+        ax_v.set_title(f"{title}: mean speed of the successful flights", fontsize=9)
+        ax_v.set_ylabel("realised speed [m/s]")
+        ax_v.set_xlabel("target speed [m/s]")
+        ax_v.set_xticks(PAPER_SPEEDS)
+        for ax in (ax_sr, ax_v):
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, ncol=2)
+    fig.suptitle("solid: this repository, held-out scenes; dashed, open markers: the paper's numbers", fontsize=9)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _paper_lines(ax_sr, ax_v, row: dict, colour: str) -> None:  # noqa: ANN001
+    label = f"{row['label']}, paper"
+    ax_sr.plot(PAPER_SPEEDS, row["sr"], ls="--", color=colour, marker="o", mfc="none", label=label)
+    if "vel" in row:
+        vel = [np.nan if v is None else v for v in row["vel"]]
+        ax_v.plot(PAPER_SPEEDS, vel, ls="--", color=colour, marker="o", mfc="none", label=label)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: see the module docstring."""
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.evaluation.figure", description=__doc__.split("\n")[0])
+    ap.add_argument("--table1", nargs="+", default=[], metavar="OUT[:ROWS]", help="ablation (Table I) outputs")
+    ap.add_argument("--table2", nargs="+", default=[], metavar="OUT[:ROWS]", help="benchmark (Table II) outputs")
+    ap.add_argument("--paper-methods", default="diffphys", help="the paper's other Table II methods, comma list")
+    ap.add_argument("--out", required=True, help="PNG to write")
+    args = ap.parse_args(argv)
+    try:
+        tables = {}
+        if args.table1:
+            tables["Table I"] = load_rows(args.table1)
+        if args.table2:
+            tables["Table II"] = load_rows(args.table2)
+        methods = tuple(m for m in args.paper_methods.split(",") if m)
+        plot_tables(tables, args.out, paper_methods=methods)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

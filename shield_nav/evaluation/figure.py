@@ -87,7 +87,7 @@ def plot_tables(tables: dict[str, dict[str, dict]], path: str, paper_methods: tu
     if not tables:
         raise ValueError("nothing to draw: give --table1 and/or --table2")
     plt = _plt()
-    fig, axes = plt.subplots(2, len(tables), figsize=(5.6 * len(tables), 7.4), squeeze=False, sharex=True)
+    fig, axes = plt.subplots(2, len(tables), figsize=(5.6 * len(tables), 8.0), squeeze=False, sharex=True)
     others = iter(f"C{k}" for k in range(4, 10))
     colours = dict(_COLOURS)
     for col, (title, rows) in enumerate(tables.items()):
@@ -117,15 +117,21 @@ def plot_tables(tables: dict[str, dict[str, dict]], path: str, paper_methods: tu
         ax_v.set_ylabel("realised speed [m/s]")
         ax_v.set_xlabel("target speed [m/s]")
         ax_v.set_xticks(PAPER_SPEEDS)
+        ax_sr.grid(alpha=0.3)
+        ax_v.grid(alpha=0.3)
+        # One legend per table, under its column, so no curve hides behind it: ours first, the paper's after.
+        legend: dict[str, object] = {}
         for ax in (ax_sr, ax_v):
-            ax.grid(alpha=0.3)
-            handles, labels = ax.get_legend_handles_labels()
-            order = sorted(range(len(labels)), key=lambda k: labels[k].endswith(", paper"))  # ours first, stable
-            ax.legend([handles[k] for k in order], [labels[k] for k in order], fontsize=7, ncol=2)
+            for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+                legend.setdefault(label, handle)
+        labels = sorted(legend, key=lambda k: (k.endswith(", paper"), k == "target speed"))
+        ax_v.legend(
+            [legend[k] for k in labels], labels, fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16)
+        )
     fig.suptitle("solid: this repository, held-out scenes; dashed, open markers: the paper's numbers", fontsize=9)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 

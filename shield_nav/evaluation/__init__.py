@@ -32,7 +32,7 @@ flags), :mod:`~shield_nav.evaluation.policies` (ONNX / TorchScript actors, privi
 :mod:`~shield_nav.evaluation.plots` (figures), :mod:`~shield_nav.evaluation.video`,
 :mod:`~shield_nav.evaluation.paper` (the paper's Tables I and II as numbers) and
 :mod:`~shield_nav.evaluation.figure` (our rows beside the paper's, ``python -m shield_nav.evaluation.figure``).
-Everything public is re-exported here.
+Everything public of the harness is re-exported here; ``paper`` and ``figure`` are imported from their modules.
 """
 
 from envs.config import ConfigError

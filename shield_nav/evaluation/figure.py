@@ -22,7 +22,7 @@ import sys
 import numpy as np
 
 from shield_nav.evaluation.paper import PAPER_SPEEDS, PAPER_TABLE_I, PAPER_TABLE_II
-from shield_nav.evaluation.plots import _plt
+from shield_nav.evaluation.plots import _plt, cell_series
 
 __all__ = ["load_rows", "main", "plot_tables", "row_series"]
 
@@ -62,17 +62,8 @@ def load_rows(specs: list[str]) -> dict[str, dict]:
 
 
 def row_series(row: dict) -> dict[str, np.ndarray]:
-    """The plotted arrays of one row: speeds, success rate and its interval (%), realised speed (NaN: no success)."""
-    keys = sorted(row["cells"], key=float)
-    cells = [row["cells"][k] for k in keys]
-    return {
-        "speed": np.array([float(k) for k in keys]),
-        "sr": np.array([100.0 * c["success_rate"] for c in cells]),
-        "lo": np.array([100.0 * c["sr_lo"] for c in cells]),
-        "hi": np.array([100.0 * c["sr_hi"] for c in cells]),
-        "vel": np.array([np.nan if c.get("vel") is None else float(c["vel"]) for c in cells]),
-        "n": np.array([int(c["n"]) for c in cells]),
-    }
+    """The plotted arrays of one loaded row (:func:`shield_nav.evaluation.plots.cell_series` of its cells)."""
+    return cell_series(row["cells"])
 
 
 def _ordered(rows: dict[str, dict]) -> list[str]:
@@ -98,9 +89,8 @@ def plot_tables(tables: dict[str, dict[str, dict]], path: str, paper_methods: tu
             colour = colours.setdefault(name, next(others, "k"))
             s = row_series(rows[name])
             trials.update(s["n"].tolist())
-            err = np.maximum(np.stack((s["sr"] - s["lo"], s["hi"] - s["sr"])), 0.0)
             label = rows[name]["label"]
-            ax_sr.errorbar(s["speed"], s["sr"], yerr=err, color=colour, marker="o", capsize=3, label=label)
+            ax_sr.errorbar(s["speed"], s["sr"], yerr=s["err"], color=colour, marker="o", capsize=3, label=label)
             ax_v.plot(s["speed"], s["vel"], color=colour, marker="o", label=label)
             if name in paper:
                 _paper_lines(ax_sr, ax_v, paper[name], colour)

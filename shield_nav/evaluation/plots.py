@@ -21,22 +21,37 @@ def _plt() -> Any:
     return plt
 
 
+def cell_series(cells: dict) -> dict[str, np.ndarray]:
+    """One row's cells (``{"9": cell, ...}`` as ``summary.json`` holds them) as arrays sorted by target speed.
+
+    ``sr``, ``lo``, ``hi`` in %, ``err`` the error bars below and above ``sr`` (float round-off at 0 or 100 % clipped),
+    ``vel`` the mean realised speed of the successful trials (NaN where none succeeded), ``n`` the trials per cell.
+    """
+    keys = sorted((k for k, c in cells.items() if c is not None), key=float)
+    cs = [cells[k] for k in keys]
+    sr = np.array([100.0 * c["success_rate"] for c in cs])
+    lo = np.array([100.0 * c["sr_lo"] for c in cs])
+    hi = np.array([100.0 * c["sr_hi"] for c in cs])
+    return {
+        "speed": np.array([float(k) for k in keys]),
+        "sr": sr,
+        "lo": lo,
+        "hi": hi,
+        "err": np.maximum(np.stack((sr - lo, hi - sr)), 0.0).reshape(2, len(keys)),
+        "vel": np.array([np.nan if c.get("vel") is None else float(c["vel"]) for c in cs]),
+        "n": np.array([int(c["n"]) for c in cs]),
+    }
+
+
 def plot_success_vs_speed(summary: dict, path: str) -> None:
     """Success rate (with the 95 % Wilson interval as error bars) against target speed, one line per row."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.0, 4.0))
     speeds = [float(v) for v in summary["speeds"]]
     for rname, row in summary["rows"].items():
-        cells = [summary["cells"][rname].get(f"{v:g}") for v in speeds]
-        pts = [(v, c) for v, c in zip(speeds, cells, strict=True) if c is not None]
-        if not pts:
-            continue
-        x = np.array([v for v, _ in pts])
-        sr = np.array([100 * c["success_rate"] for _, c in pts])
-        lo = np.array([100 * c["sr_lo"] for _, c in pts])
-        hi = np.array([100 * c["sr_hi"] for _, c in pts])
-        err = np.maximum(np.stack((sr - lo, hi - sr)), 0.0)  # clip float round-off at SR = 0 or 100 %
-        ax.errorbar(x, sr, yerr=err, marker="o", capsize=3, label=row.get("label") or rname)
+        s = cell_series(summary["cells"][rname])
+        if len(s["speed"]):
+            ax.errorbar(s["speed"], s["sr"], yerr=s["err"], marker="o", capsize=3, label=row.get("label") or rname)
     ax.set_xlabel("target speed [m/s]")
     ax.set_ylabel("success rate [%]")
     ax.set_ylim(-3, 103)
@@ -56,10 +71,10 @@ def plot_velocity(summary: dict, path: str) -> None:
     speeds = [float(v) for v in summary["speeds"]]
     ax.plot(speeds, speeds, "k--", lw=0.8, label="target")
     for rname, row in summary["rows"].items():
-        pts = [(v, summary["cells"][rname].get(f"{v:g}")) for v in speeds]
-        pts = [(v, c["vel"]) for v, c in pts if c is not None and np.isfinite(c["vel"])]
-        if pts:
-            ax.plot(*zip(*pts, strict=True), marker="o", label=row.get("label") or rname)
+        s = cell_series(summary["cells"][rname])
+        ok = np.isfinite(s["vel"])
+        if ok.any():
+            ax.plot(s["speed"][ok], s["vel"][ok], marker="o", label=row.get("label") or rname)
     ax.set_xlabel("target speed [m/s]")
     ax.set_ylabel("realised speed of successful trials [m/s]")
     ax.set_xticks(speeds)

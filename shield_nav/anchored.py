@@ -1,6 +1,6 @@
 """Anchored PPO: rsl-rl's ``PPO`` with a penalty on drifting away from a frozen reference actor.
 
-Why: PPO fine-tuning of a behaviour-cloned depth student collapsed twice here (docs/results.md, "PPO fine-tuning of
+Why: PPO fine-tuning of a behaviour-cloned depth student collapsed twice here (docs/lab-log.md, "PPO fine-tuning of
 the oracle-DAgger student"): once the actor was released from its critic warm-up, the return fell from 18 to 5 within
 300 iterations, at learning rates 1e-4 and 3e-5 alike. The reward ranks the expert's behaviour well above crashing,
 so the collapse is an optimisation problem: a young critic's noisy advantages push an actor that starts near a good

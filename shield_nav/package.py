@@ -64,23 +64,34 @@ def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainCo
 
 
 def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
-    """Write ``<out_root>/<name>/`` from a training checkpoint; return the folder."""
+    """Write ``<out_root>/<name>/`` from a training checkpoint; return the folder.
+
+    ``meta.json`` hashes the files written here (checkpoint, config, exports, curves). A model card (``README.md``)
+    already in the folder is kept and not hashed: it is written by hand after packaging. A stale export or
+    ``curves.csv`` that this checkpoint does not produce is removed, so the folder holds one policy only.
+    """
     model, cfg, meta = actor_from_checkpoint(ckpt_path)
     out = os.path.join(out_root, name)
     os.makedirs(os.path.join(out, "params"), exist_ok=True)
+    written = ["model.pt"]
     shutil.copyfile(ckpt_path, os.path.join(out, "model.pt"))
     with open(os.path.join(out, "params", "config.yaml"), "w") as fh:
         fh.write(to_yaml(cfg))
     if model is not None:
         export_policy(model, out)
+        written += ["policy.onnx", "policy.pt"]
     run_dir = os.path.dirname(os.path.abspath(ckpt_path))
     try:
         series = read_events(run_dir)
+    except FileNotFoundError:
+        print(f"[package] no tensorboard events in {run_dir}: no curves.csv")
+    else:
         series = {k: [(s, v) for s, v in pts if s <= meta["iter"]] for k, pts in series.items()}
         write_csv(series, os.path.join(out, "curves.csv"))
-    except FileNotFoundError:
-        pass
-    files = sorted(f for f in os.listdir(out) if os.path.isfile(os.path.join(out, f)) and f != "meta.json")
+        written.append("curves.csv")
+    for stale in ("policy.onnx", "policy.pt", "curves.csv"):
+        if stale not in written and os.path.isfile(os.path.join(out, stale)):
+            os.remove(os.path.join(out, stale))
     meta.update(
         {
             "name": name,
@@ -90,7 +101,7 @@ def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
             else ("ppo" if model is not None else "privileged_teacher"),
             "source_run": os.path.relpath(run_dir),
             "source_checkpoint": os.path.basename(ckpt_path),
-            "sha256": {f: _sha256(os.path.join(out, f)) for f in files},
+            "sha256": {f: _sha256(os.path.join(out, f)) for f in sorted(written)},
         }
     )
     with open(os.path.join(out, "meta.json"), "w") as fh:

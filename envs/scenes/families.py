@@ -195,7 +195,7 @@ def _gen_traps(rng: np.random.Generator, index: int, u: float) -> dict:
     # between their footprints, so a straight line from the start runs into a cup in most trials, and the route
     # around them is 1.1-1.3x the straight distance. Sparse clutter fills the rest; it is placed after the cups
     # and keeps out of their footprint circles, so every cup is an empty dead end. Where the ``ablation`` scenes'
-    # smaller traps sit off the routes a local avoider takes (docs/results.md, "Do these scenes reward global
+    # smaller traps sit off the routes a local avoider takes (docs/lab-log.md, "Do these scenes reward global
     # guidance?"), here the Euclidean distance's local minima lie on them. ``train_traps`` draws the same layout
     # from training seeds (16 levels), so the ``traps`` scenes stay held out.
     placer = _placer(rng, LO, HI, MIN_GAP)

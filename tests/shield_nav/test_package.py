@@ -21,11 +21,19 @@ def test_package_export_matches_the_checkpoint_and_resume_starts_a_new_run(tmp_p
                          cwd=REPO, capture_output=True, text=True, timeout=300)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     run = os.path.join(logs, "quick", os.listdir(os.path.join(logs, "quick"))[0])
+    # A folder that already holds a model card (written by hand after packaging) keeps it, unhashed.
+    os.makedirs(tmp_path / "checkpoints" / "tiny")
+    (tmp_path / "checkpoints" / "tiny" / "README.md").write_text("card\n")
     out = package(os.path.join(run, "model_0.pt"), "tiny", str(tmp_path / "checkpoints"))
-    assert {"model.pt", "policy.onnx", "policy.pt", "curves.csv", "meta.json"} <= set(os.listdir(out))
+    assert {"model.pt", "policy.onnx", "policy.pt", "curves.csv", "meta.json", "README.md"} <= set(os.listdir(out))
     with open(os.path.join(out, "meta.json")) as fh:
         meta = json.load(fh)
-    assert meta["iter"] == 0 and set(meta["sha256"]) >= {"model.pt", "policy.onnx"}
+    assert meta["iter"] == 0 and set(meta["sha256"]) == {"model.pt", "policy.onnx", "policy.pt", "curves.csv"}
+    import hashlib
+
+    with open(os.path.join(out, "policy.onnx"), "rb") as fh:
+        assert meta["sha256"]["policy.onnx"] == hashlib.sha256(fh.read()).hexdigest()
+    assert (tmp_path / "checkpoints" / "tiny" / "README.md").read_text() == "card\n"
     # The packaged ONNX reproduces the checkpoint's deterministic actor over a few steps.
     model, _, _ = actor_from_checkpoint(os.path.join(out, "model.pt"))
     sess = ort.InferenceSession(os.path.join(out, "policy.onnx"), providers=["CPUExecutionProvider"])

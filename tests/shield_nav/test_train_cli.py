@@ -301,7 +301,13 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
 
         base = to_dict(load_train_config(os.path.join(REPO, "configs", "train", "recipe_dijkstra_cbf.yaml")))
         full = to_dict(cfg)
-        assert {k for k in full if full[k] != base[k]} == {"name", "shield_in_loop", "shield"} and cfg.shield_in_loop
+        assert {k for k in full if full[k] != base[k]} == {"name", "seed", "env", "shield_in_loop", "shield"}
+        assert cfg.shield_in_loop and cfg.seed == 1 and cfg.env.seed == 1
+        # its env differs from the formulation's in the seed and the training time limit only (the evaluation's 1.5 x)
+        assert {k for k in full["env"] if full["env"][k] != base["env"][k]} == {"seed", "episode"}
+        assert {k for k in full["env"]["episode"] if full["env"]["episode"][k] != base["env"]["episode"][k]} == {
+            "timeout_factor"}  # fmt: skip
+        assert cfg.env.episode.timeout_factor == 1.5 and base["env"]["episode"]["timeout_factor"] == 2.5
         # the shield it trains behind: the default but for the radius, memory, planned braking deceleration and
         # ground row the shipped run was trained with (the deploy defaults changed after it: 0.3 m, 50 steps, a_b 10,
         # ground row at 0.35 m)
@@ -310,12 +316,11 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         assert cfg.shield.r_safe == 0.5 and cfg.shield.memory_steps == 0 and cfg.shield.brake_accel == 8.0
         assert cfg.shield.min_altitude == 0.0
         ckpt = torch.load(os.path.join(REPO, "checkpoints", "full", "model.pt"), weights_only=False)
-        # the recipe rebuilds the shipped run: its stored config, read back with the defaults of keys added since
-        # (e.g. shield.passing, off) or the values they had before (expert.commit_dist 0), equals the recipe but for
-        # the name
+        # the recipe rebuilds the shipped run: its stored config, read back with the defaults of any keys added since,
+        # equals the recipe but for the name and the folder the run was written under (--log-dir)
         stored = to_dict(load_train_config(overrides=stored_config(TrainConfig, ckpt["infos"]["config"])))
-        assert {k for k in full if full[k] != stored.get(k)} <= {"name"}
-        assert "passing" not in ckpt["infos"]["config"]["shield"] and not cfg.shield.passing
+        assert {k for k in full if full[k] != stored.get(k)} <= {"name", "log_root"}
+        assert not ckpt["infos"]["config"]["shield"]["passing"] and not cfg.shield.passing
     else:
         assert not cfg.shield_in_loop
     if name == "recipe_student.yaml":  # DAgger from the planning expert at 3-9 m/s, from the shipped third cycle

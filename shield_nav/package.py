@@ -66,7 +66,7 @@ def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainCo
 def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
     """Write ``<out_root>/<name>/`` from a training checkpoint; return the folder.
 
-    ``meta.json`` hashes the files written here (checkpoint, config, exports, curves). A model card (``README.md``)
+    ``meta.json`` hashes the files written here (checkpoint, exports, curves). A model card (``README.md``)
     already in the folder is kept and not hashed: it is written by hand after packaging. A stale export or
     ``curves.csv`` that this checkpoint does not produce is removed, so the folder holds one policy only.
     """

@@ -81,22 +81,6 @@ _ZERO3 = np.zeros(3)
 _EYE3 = np.eye(3)
 
 
-def _view_heading(psi: float, vel: np.ndarray, limit: float, min_speed: float) -> float:
-    """The commanded heading ``psi`` [rad], moved to within ``limit`` [rad] of the horizontal velocity's direction.
-
-    Below ``min_speed`` of horizontal speed, or already within the bound, ``psi`` itself is returned (the same
-    float). Otherwise the bound nearer to ``psi``: the returned heading differs from the velocity's direction by
-    exactly ``limit``, on ``psi``'s side, in ``psi``'s branch of the angle (so the yaw loop turns the short way).
-    """
-    vx, vy = float(vel[0]), float(vel[1])
-    if vx * vx + vy * vy <= min_speed * min_speed:
-        return psi
-    off = (psi - math.atan2(vy, vx) + math.pi) % (2.0 * math.pi) - math.pi  # psi - heading of v, in [-pi, pi)
-    if abs(off) <= limit:
-        return psi
-    return psi - off + math.copysign(limit, off)
-
-
 @dataclass
 class ShieldConfig:
     """HOCBF shield parameters. Acceleration units are m/s^2, lengths m."""
@@ -210,15 +194,6 @@ class ShieldConfig:
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
     lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Ceiling row")."""
 
-    view_yaw_deg: float = 0.0
-    """If > 0, the shield also turns the camera towards the flight: when the horizontal speed exceeds
-    ``view_min_speed``, a commanded heading more than ``view_yaw_deg`` off the horizontal velocity's direction is
-    moved to that bound, and roll and pitch are rebuilt for the new heading so that the acceleration (filtered or not)
-    is unchanged. The depth camera sees 43.5 deg either side; flying sideways or backwards moves the vehicle into
-    space it has not seen. 0: off (the commanded heading passes through, as in the paper)."""
-    view_min_speed: float = 1.0
-    """Horizontal speed [m/s] above which ``view_yaw_deg`` acts."""
-
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
         require(self.alpha0 > 0, f"{prefix}alpha0", f"must be > 0, got {self.alpha0}")
@@ -253,10 +228,6 @@ class ShieldConfig:
             val = getattr(self, key)
             require(math.isfinite(val) and 0.01 <= val <= 1000, f"{prefix}{key}", f"must be in [0.01, 1000], got {val}")
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
-        require(math.isfinite(self.view_yaw_deg) and 0 <= self.view_yaw_deg <= 180, f"{prefix}view_yaw_deg",
-                f"must be in [0, 180] (0: off), got {self.view_yaw_deg}")  # fmt: skip
-        require(math.isfinite(self.view_min_speed) and self.view_min_speed >= 0, f"{prefix}view_min_speed",
-                f"must be finite and >= 0, got {self.view_min_speed}")  # fmt: skip
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
                 f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
         require(self.control_dt > 0 and math.isfinite(self.control_dt), f"{prefix}control_dt",
@@ -610,7 +581,6 @@ class HOCBFShield:
         solve_us = np.zeros(num)
         total_us = np.zeros(num)
         lag = self.cfg.lag_s
-        view = math.radians(self.cfg.view_yaw_deg)
         for i in range(num):
             # Everything a deployed vehicle would run per control step is inside the timed region.
             t0 = time.perf_counter()
@@ -667,11 +637,5 @@ class HOCBFShield:
                 active[i] = True
             else:
                 a_safe[i] = a_raw[i]
-            if view > 0.0:
-                psi = _view_heading(cmd[i, 3], v_i, view, self.cfg.view_min_speed)
-                if psi != cmd[i, 3]:
-                    a = a_safe[i]
-                    out_cmd[i, :3] = _command_from_accel_1(a[0], a[1], a[2], psi, g)
-                    out_cmd[i, 3] = psi
             total_us[i] = 1e6 * (time.perf_counter() - t0)
         return ShieldOutput(out_cmd, a_raw, a_safe, active, status, ncon, slack, solve_us, total_us)

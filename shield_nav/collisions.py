@@ -15,8 +15,11 @@ bearing** is the horizontal angle between the direction of travel (the last two 
 direction to the nearest surface point of the obstacle hit. Below half the camera's horizontal field of view
 (``--hfov``, default the camera's 87 deg) the obstacle was inside the view cone around the direction of travel: a
 failure to avoid what the camera showed. Above it, the vehicle clipped something beside it, which it could only
-have avoided by remembering it. The yaw is not recorded, so the cone is centred on the direction of travel, not on
-the camera axis. Floor and ceiling hits have no horizontal bearing and are left out.
+have avoided by remembering it. Floor and ceiling hits have no horizontal bearing and are left out. Outputs that
+record the heading (a fifth trajectory column, the yaw of the camera's axis; written since 2026-11-28) add two
+shares measured from the camera's axis itself: the obstacle hit lay inside the camera's horizontal view
+(``in_camera``), and the vehicle was moving more than half the field of view off its camera's axis when it hit
+(``blind``: flying sideways or backwards into space the camera did not show).
 """
 
 from __future__ import annotations
@@ -87,14 +90,43 @@ def approach_bearing(scene: Scene, traj: np.ndarray) -> tuple[str, float | None]
     cls, dist, prim = _nearest(scene, pos)
     if prim is None or dist > MAX_HIT_DISTANCE:
         return (cls if dist <= MAX_HIT_DISTANCE else "unresolved"), None
+    return cls, _angle_deg(tr[-1, :2] - tr[-2, :2], _toward_surface(prim, pos))
+
+
+def _toward_surface(prim: Primitive, pos: np.ndarray) -> np.ndarray:
+    """Horizontal direction (unnormalised) from ``pos`` to the primitive's nearest surface point.
+
+    Minus the SDF's gradient, by central differences.
+    """
     h = 1e-5
-    grad = np.array([primitive_sdf(prim, np.stack([pos + h * e, pos - h * e]))[[0, 1]] @ [1.0, -1.0] / (2 * h)
-                     for e in np.eye(3)])  # fmt: skip
-    travel, to_surface = (tr[-1, :2] - tr[-2, :2]), -grad[:2]
-    nt, ns = np.linalg.norm(travel), np.linalg.norm(to_surface)
-    if nt < 1e-9 or ns < 1e-9:
-        return cls, None
-    return cls, float(np.degrees(np.arccos(np.clip(travel @ to_surface / (nt * ns), -1.0, 1.0))))
+    return -np.array([primitive_sdf(prim, np.stack([pos + h * e, pos - h * e]))[[0, 1]] @ [1.0, -1.0] / (2 * h)
+                      for e in np.eye(3)[:2]])  # fmt: skip
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float | None:
+    """Angle between two horizontal vectors (deg, in [0, 180]); ``None`` if either is (nearly) zero."""
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na < 1e-9 or nb < 1e-9:
+        return None
+    return float(np.degrees(np.arccos(np.clip(a @ b / (na * nb), -1.0, 1.0))))
+
+
+def camera_angles(scene: Scene, traj: np.ndarray) -> tuple[float | None, float | None]:
+    """Angles (deg) from the camera's horizontal axis at the crash to the obstacle hit and to the direction of travel.
+
+    ``traj`` is ``(T, 5)``: x, y, z, speed, heading [rad] (:func:`approach_bearing` for the rest). The first angle is
+    ``None`` where the approach bearing is (floor, ceiling, unresolved); the second where the vehicle did not move.
+    """
+    tr = np.asarray(traj, dtype=np.float64)
+    if tr.ndim != 2 or tr.shape[0] < 2 or tr.shape[1] < 5:
+        raise ValueError(f"need a trajectory with a heading column (T >= 2, 5), got shape {tr.shape}")
+    axis = np.array([np.cos(tr[-1, 4]), np.sin(tr[-1, 4])])
+    pos = tr[-1, :3]
+    _, dist, prim = _nearest(scene, pos)
+    to_obstacle = None
+    if prim is not None and dist <= MAX_HIT_DISTANCE:
+        to_obstacle = _angle_deg(axis, _toward_surface(prim, pos))
+    return to_obstacle, _angle_deg(axis, tr[-1, :2] - tr[-2, :2])
 
 
 def _crashes(
@@ -147,24 +179,41 @@ def bearings(
     """(row, speed) -> approach bearings of its crashes (:func:`approach_bearing`) and their summary.
 
     Each value holds ``n`` (crashes with a bearing), ``median_deg``, ``in_view`` (the share with a bearing below
-    ``hfov_deg / 2``) and ``bearings`` (class, degrees) per crash.
+    ``hfov_deg / 2``), ``bearings`` (class, degrees) per crash, and from the recorded heading (NaN for outputs
+    without it; :func:`camera_angles`) ``in_camera``, the share of crashes whose obstacle lay within ``hfov_deg / 2``
+    of the camera's axis, and ``blind``, the share that moved more than ``hfov_deg / 2`` off it.
     """
     if not 0.0 < hfov_deg < 180.0:
         raise ValueError(f"hfov_deg must be in (0, 180), got {hfov_deg}")
     found: dict[tuple[str, float], list] = defaultdict(list)
+    cams: dict[tuple[str, float], list] = defaultdict(list)
+    blind: dict[tuple[str, float], list] = defaultdict(list)
     for key, scene, trajs in _crashes(out_dir, rows, speeds):
         found[key] += []
         for tr in trajs:
             cls, deg = approach_bearing(scene, tr)
             if deg is not None:
                 found[key].append((cls, deg))
+            if tr.shape[1] >= 5 and len(tr) >= 2:  # the heading is recorded
+                to_obstacle, to_travel = camera_angles(scene, tr)
+                if to_obstacle is not None:
+                    cams[key].append(to_obstacle)
+                if to_travel is not None:
+                    blind[key].append(to_travel)
+    half = hfov_deg / 2
+
+    def share(x: list) -> float:
+        return float((np.array(x) < half).mean()) if x else float("nan")
+
     out = {}
     for key, items in found.items():
         deg = np.array([d for _, d in items])
         out[key] = {
             "n": len(items),
             "median_deg": float(np.median(deg)) if len(deg) else float("nan"),
-            "in_view": float((deg < hfov_deg / 2).mean()) if len(deg) else float("nan"),
+            "in_view": share(list(deg)),
+            "in_camera": share(cams[key]),
+            "blind": 1.0 - share(blind[key]) if blind[key] else float("nan"),
             "bearings": items,
         }
     return out
@@ -184,14 +233,18 @@ def format_table(result: dict[tuple[str, float], Counter]) -> str:
 def format_bearings(result: dict[tuple[str, float], dict], hfov_deg: float) -> str:
     """Markdown table of :func:`bearings`: per (row, speed) the crashes, median bearing, in-view and beside shares."""
     half = hfov_deg / 2
-    lines = [f"| row | speed | n | median bearing (deg) | in view (< {half:g} deg) | beside |",
-             "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    lines = [f"| row | speed | n | median bearing (deg) | in view (< {half:g} deg) | beside | in the camera's view | "
+             "moving outside the camera's view |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+
+    def pct(x: float) -> str:
+        return "-" if np.isnan(x) else f"{100 * x:.0f} %"
+
     for (row, speed), r in sorted(result.items()):
         if r["n"]:
-            lines.append(f"| {row} | {speed:g} | {r['n']} | {r['median_deg']:.0f} | {100 * r['in_view']:.0f} % | "
-                         f"{100 * (1 - r['in_view']):.0f} % |")  # fmt: skip
+            lines.append(f"| {row} | {speed:g} | {r['n']} | {r['median_deg']:.0f} | {pct(r['in_view'])} | "
+                         f"{pct(1 - r['in_view'])} | {pct(r['in_camera'])} | {pct(r['blind'])} |")  # fmt: skip
         else:
-            lines.append(f"| {row} | {speed:g} | 0 | - | - | - |")
+            lines.append(f"| {row} | {speed:g} | 0 | - | - | - | - | - |")
     return "\n".join(lines)
 
 
@@ -216,7 +269,8 @@ def main(argv: list[str] | None = None) -> None:
     if a.bearing:
         res = bearings(a.out_dir, rows, speeds, a.hfov)
         if a.json:
-            print(json.dumps([{"row": r, "speed": sp, **{k: v[k] for k in ("n", "median_deg", "in_view")}}
+            print(json.dumps([{"row": r, "speed": sp, **{k: v[k] for k in ("n", "median_deg", "in_view", "in_camera",
+                                                                            "blind")}}
                               for (r, sp), v in sorted(res.items())]))  # fmt: skip
         else:
             print(format_bearings(res, a.hfov))

@@ -176,6 +176,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     pos0 = env.local_pos.copy()
     phi_start = env.field_stack.geodesic(ids, pos0)
     track_pos = [pos0]
+    track_heading = [_headings(env)]
     track_speed: list[np.ndarray] = []
     track_esdf = [env.field_stack.esdf(ids, pos0)]
     end_step = np.full(n, -1)
@@ -219,6 +220,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             on_step(env, t, step_active)
         pos = env.local_pos.copy()
         track_pos.append(pos)
+        track_heading.append(_headings(env))
         track_speed.append(np.linalg.norm(env.vehicles.vel_w, axis=1))
         track_esdf.append(env.field_stack.esdf(ids, pos))
         for name, flag in (("success", info["success"]), ("collision", info["collision"]),
@@ -227,6 +229,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
                 if end_step[i] < 0:
                     end_step[i], outcome[i] = t, name
     P, V, E = np.stack(track_pos), np.stack(track_speed), np.stack(track_esdf)  # (T+1, n, 3), (T, n), (T+1, n)
+    H = np.stack(track_heading)  # (T+1, n)
     records = []
     every = cfg.trajectory_every
     dt = env.cfg.vehicle.command_dt
@@ -248,12 +251,20 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             "outcome": outcome[i],
             "steps": T,
             "metrics": m,
-            "traj": np.round(np.concatenate((pos_i[keep], np.r_[0.0, V[:T, i]][keep, None]), axis=1), 3).tolist(),
+            "traj": np.round(
+                np.concatenate((pos_i[keep], np.r_[0.0, V[:T, i]][keep, None], H[keep, i, None]), axis=1), 3
+            ).tolist(),  # fmt: skip
         }
         if shield is not None:
             rec["shield"] = {k: (v[i].item()) for k, v in sh.items()}
         records.append(rec)
     return records
+
+
+def _headings(env: Any) -> np.ndarray:
+    """Heading (yaw of the body x axis, the camera's optical axis projected on the ground) [rad] of every vehicle."""
+    r = env.vehicles.R_wb
+    return np.arctan2(r[:, 1, 0], r[:, 0, 0])
 
 
 def run_unit(spec: UnitSpec) -> dict:

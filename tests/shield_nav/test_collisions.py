@@ -12,6 +12,7 @@ from shield_nav.collisions import (
     approach_bearing,
     bearings,
     breakdown,
+    camera_angles,
     classify_hit,
     format_bearings,
     format_table,
@@ -151,3 +152,39 @@ def test_bearings_over_an_eval_folder_and_cli(tmp_path, capsys):
     assert row["n"] == 2 and row["in_view"] == pytest.approx(0.5) and row["median_deg"] == pytest.approx(45.0, abs=1e-3)
     with pytest.raises(SystemExit):
         main([str(tmp_path), "--bearing", "--hfov", "200"])
+
+
+def test_camera_angles_and_bearings_from_the_recorded_heading(tmp_path, capsys):
+    scene = make_scene("ablation", 0)
+    box = next(p for p in scene.primitives if p.kind == "box")
+    w, z = box.quat[0], box.quat[3]
+    yaw = 2.0 * math.atan2(z, w)
+    normal = np.array([math.cos(yaw), math.sin(yaw), 0.0])  # the box's +x face normal
+    hit = np.array(box.center) + (box.half[0] + 0.19) * normal
+    along = np.array([-normal[1], normal[0], 0.0])
+    facing_box, facing_along = yaw + math.pi, yaw + math.pi / 2  # camera axis -normal, and +along
+
+    def traj(p0: np.ndarray, heading: float) -> list:
+        return [[*p0, 3.0, heading], [*hit, 3.0, heading]]
+
+    looking = traj(hit + 0.5 * normal, facing_box)  # flies into the face, camera on it: in view, not blind
+    sideways = traj(hit + 0.5 * normal, facing_along)  # flies into the face looking along it: 90 deg, blind
+    grazing = traj(hit - 0.5 * along, facing_along)  # slides along the face looking ahead: face beside, not blind
+    assert camera_angles(scene, np.array(looking)) == pytest.approx((0.0, 0.0), abs=1e-3)
+    assert camera_angles(scene, np.array(sideways)) == pytest.approx((90.0, 90.0), abs=1e-3)
+    assert camera_angles(scene, np.array(grazing)) == pytest.approx((90.0, 0.0), abs=1e-3)
+    floor = np.array([[60.0, 0.0, 0.3, 3.0, 0.0], [60.5, 0.0, 0.2, 3.0, math.pi]])
+    assert camera_angles(scene, floor) == (None, pytest.approx(180.0))
+    with pytest.raises(ValueError, match="heading column"):
+        camera_angles(scene, np.array(looking)[:, :4])
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "collision", "traj": looking},
+        {"trial": 1, "outcome": "collision", "traj": sideways},
+        {"trial": 2, "outcome": "collision", "traj": grazing},
+        {"trial": 3, "outcome": "success", "traj": sideways},
+    ])  # fmt: skip
+    r = bearings(str(tmp_path))[("r", 3.0)]
+    assert r["n"] == 3 and r["in_view"] == pytest.approx(2 / 3)  # travel cone: the two head-on flights
+    assert r["in_camera"] == pytest.approx(1 / 3) and r["blind"] == pytest.approx(1 / 3)
+    main([str(tmp_path), "--bearing"])
+    assert "| r | 3 | 3 | 0 | 67 % | 33 % | 33 % | 33 % |" in capsys.readouterr().out

@@ -288,6 +288,13 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0
     assert man["packages"]["numpy"] == np.__version__ and man["packages"]["mujoco"] == mujoco.__version__
     assert isinstance(man["cpu"], str)
+    # Each recorded trajectory point is x, y, z, speed, heading; the first heading is the trial's start yaw.
+    with open(os.path.join(out1, "units", "goal_seeking__ablation-07__v9.json")) as f:
+        unit_trials = json.load(f)["trials"]
+    for t in unit_trials:
+        tr = np.asarray(t["traj"])
+        assert tr.shape[1] == 5 and np.all(np.abs(tr[:, 4]) <= math.pi + 1e-3)
+        assert tr[0, 4] == pytest.approx(math.remainder(t["yaw"], 2 * math.pi), abs=1e-3)
     # Starts and goals lie in the scene's regions.
     from envs.scenes import make_scene
 

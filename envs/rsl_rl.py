@@ -20,7 +20,8 @@ actions are mapped to commands, filtered, and the filtered commands are flown (`
 the learner trains the system it is deployed as; ``extras["log"]["shield/active"]`` is the share of envs whose command
 the filter changed that step and ``shield/correction`` the mean size of the change [m/s^2]. With ``filter_penalty``
 (``shield_penalty`` of the train config) each step's reward loses that times the env's change, logged as
-``reward/shield``.
+``reward/shield``. With ``view_penalty`` (the train config's key of that name) it loses that times
+:func:`outside_view`, how far the vehicle flies outside its camera's view, logged as ``reward/view``.
 
 ``extras["time_outs"]`` (N,) marks truncations for bootstrapping; ``extras["log"]`` holds per-step reward-term means
 and, for finished episodes, their outcomes (success, collision, timeout, out of bounds), mean speed and clearance,
@@ -55,6 +56,22 @@ class CommandFilter(Protocol):
         ...
 
 
+def outside_view(env: NavigationEnv) -> np.ndarray:
+    """How far [rad] each vehicle's horizontal velocity points outside its camera's horizontal view, (N,).
+
+    The angle between the horizontal velocity and the heading (the camera axis projected on the ground) beyond half
+    the horizontal field of view, times a ramp from 0 at 0.5 m/s to 1 at 1.5 m/s of horizontal speed (a hovering
+    vehicle's velocity direction is noise).
+    """
+    r = env.vehicles.R_wb
+    hx, hy = r[:, 0, 0], r[:, 1, 0]
+    v = env.vehicles.vel_w
+    ang = np.abs(np.arctan2(hx * v[:, 1] - hy * v[:, 0], hx * v[:, 0] + hy * v[:, 1]))
+    speed = np.hypot(v[:, 0], v[:, 1])
+    half = np.radians(env.cfg.camera.hfov_deg) / 2.0
+    return np.maximum(0.0, ang - half) * np.clip(speed - 0.5, 0.0, 1.0)
+
+
 class RslRlVecEnv(VecEnv):
     """Wraps a :class:`NavigationEnv` (numpy) for rsl-rl (torch). Shapes are stated in the module docstring.
 
@@ -73,6 +90,7 @@ class RslRlVecEnv(VecEnv):
         expert: Callable[[NavigationEnv], np.ndarray] | None = None,
         command_filter: CommandFilter | None = None,
         filter_penalty: float = 0.0,
+        view_penalty: float = 0.0,
     ) -> None:  # noqa: D107
         if not (np.isfinite(filter_penalty) and filter_penalty >= 0):
             raise ValueError(f"filter_penalty must be a finite number >= 0, got {filter_penalty}")
@@ -82,6 +100,9 @@ class RslRlVecEnv(VecEnv):
         self.expert = expert
         self.command_filter = command_filter
         self.filter_penalty = float(filter_penalty)
+        if not (np.isfinite(view_penalty) and view_penalty >= 0):
+            raise ValueError(f"view_penalty must be a finite number >= 0, got {view_penalty}")
+        self.view_penalty = float(view_penalty)
         self.cfg = env.cfg
         self.device = torch.device(device)
         self.num_envs = env.num_envs
@@ -154,6 +175,10 @@ class RslRlVecEnv(VecEnv):
         if self.filter_penalty:
             penalty = -self.filter_penalty * correction
             rew = rew + penalty
+        view = None
+        if self.view_penalty:
+            view = -self.view_penalty * np.where(term | trunc, 0.0, outside_view(self.env))
+            rew = rew + view
         if self.command_filter is not None:
             self.command_filter.reset(np.flatnonzero(term | trunc))
         self._obs = self._to_tensordict(obs, info)
@@ -163,6 +188,8 @@ class RslRlVecEnv(VecEnv):
             log["shield/correction"] = torch.as_tensor(float(np.mean(correction)), dtype=torch.float32)
         if penalty is not None:
             log["reward/shield"] = torch.as_tensor(float(np.mean(penalty)), dtype=torch.float32)
+        if view is not None:
+            log["reward/view"] = torch.as_tensor(float(np.mean(view)), dtype=torch.float32)
         extras = {"time_outs": torch.from_numpy(trunc).to(self.device), "log": log}
         dones = torch.from_numpy(term | trunc).to(self.device)
         return self._obs, torch.from_numpy(rew.astype(np.float32)).to(self.device), dones, extras

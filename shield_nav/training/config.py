@@ -323,6 +323,11 @@ class TrainConfig:
     """Intervention penalty of ``shield_in_loop``: each step's reward loses this times the shield's correction
     ``|a_safe - a_raw|`` [1 per m/s^2] (logged as ``reward/shield``), so the policy is paid for flying what the
     shield lets through unchanged rather than for leaning on it. 0: off (the shipped Full)."""
+    view_penalty: float = 0.0
+    """Look-where-you-fly penalty: each step's reward loses this times how far [rad] the horizontal velocity points
+    outside the camera's horizontal view (0 within half the field of view of the heading), faded in from 0.5 to
+    1.5 m/s of horizontal speed (logged as ``reward/view``). A vehicle that slides sideways moves into space its
+    depth image does not show. 0: off (every recipe)."""
 
     def validate(self, prefix: str = "") -> None:
         """Cross-field checks naming the key."""
@@ -339,6 +344,8 @@ class TrainConfig:
         require(math.isfinite(pen) and pen >= 0, f"{prefix}shield_penalty", f"must be a finite number >= 0, got {pen}")
         require(pen == 0 or self.shield_in_loop, f"{prefix}shield_penalty",
                 f"{pen} needs shield_in_loop: true (it penalises the shield's corrections)")  # fmt: skip
+        vp = self.view_penalty
+        require(math.isfinite(vp) and vp >= 0, f"{prefix}view_penalty", f"must be a finite number >= 0, got {vp}")
         require(r.num_steps_per_env >= 1, f"{prefix}runner.num_steps_per_env", "must be >= 1")
         require(r.save_interval >= 1, f"{prefix}runner.save_interval", "must be >= 1")
         runners = ("OnPolicyRunner", "DistillationRunner")

@@ -114,3 +114,50 @@ def test_train_cli_with_the_shield_in_the_loop_logs_its_activity(tmp_path):
     stored = torch.load(os.path.join(run, "model_1.pt"), weights_only=False)["infos"]["config"]
     assert stored["shield_in_loop"] is True and stored["shield"]["brake_accel"] == ShieldConfig().brake_accel
     assert stored["shield_penalty"] == 0.01
+
+
+def test_view_penalty_by_hand_and_in_the_adapters_reward():
+    from envs.rsl_rl import outside_view
+
+    env = _env()
+    half = np.radians(env.cfg.camera.hfov_deg) / 2.0
+    yaw = np.radians(90.0)
+    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+    cases = [  # (heading rotation, velocity, expected penalty [rad])
+        (np.eye(3), [3.0, 0.0, 0.0], 0.0),  # flying along the camera axis
+        (np.eye(3), [0.0, 3.0, 0.0], np.pi / 2 - half),  # sideways at speed: 46.5 deg beyond the view
+        (np.eye(3), [0.0, -1.0, 0.0], 0.5 * (np.pi / 2 - half)),  # sideways at 1 m/s: half the ramp
+        (np.eye(3), [-3.0, 0.0, 0.0], np.pi - half),  # backwards
+        (np.eye(3), [0.0, 0.4, 0.0], 0.0),  # hovering: below the ramp
+        (np.eye(3), [0.0, 0.0, 5.0], 0.0),  # climbing straight up: no horizontal velocity
+        (rz, [0.0, 3.0, 0.0], 0.0),  # heading +y, flying +y
+        (rz, [3.0, 3.0, 0.0], np.pi / 4 - half),  # 45 deg off the axis: 1.5 deg beyond the view
+    ]
+    for rot, vel, want in cases:
+        env.vehicles._qpos[0, 3:7] = _quat_of(rot)
+        env.vehicles._qvel[0, :3] = vel
+        assert outside_view(env)[0] == pytest.approx(want, abs=1e-9), (rot, vel)
+    # In the adapter: the reward is the env's minus the weight times it, 0 on a step that ends an episode.
+    a, b = _env(), _env()
+    vec = RslRlVecEnv(a, view_penalty=0.5)
+    a.reset(seed=0, options=OPTS)
+    act = np.array([[0.2, 0.4, 0.0, 0.0], [0.2, -0.3, 0.2, 0.0]])  # rolls: the vehicles slide sideways
+    paid = []
+    for _ in range(60):
+        _, rew, term, trunc, _ = b.step(act)
+        want = 0.5 * np.where(term | trunc, 0.0, outside_view(b))
+        _, vec_rew, _, extras = vec.step(torch.from_numpy(act))
+        np.testing.assert_allclose(vec_rew.numpy(), (rew - want).astype(np.float32), rtol=1e-6, atol=1e-6)
+        assert float(extras["log"]["reward/view"]) == pytest.approx(-want.mean(), abs=1e-7)
+        paid.append(want.sum())
+    assert sum(paid) > 0  # the rolled vehicles did slide outside the view, so the equality says something
+    with pytest.raises(ValueError, match="view_penalty"):
+        RslRlVecEnv(_env(), view_penalty=-1.0)
+    with pytest.raises(ConfigError, match="view_penalty"):
+        load_train_config(os.path.join(REPO, "configs/train/quick.yaml"), ["view_penalty=nan"])
+
+
+def _quat_of(rot: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a rotation about z."""
+    yaw = np.arctan2(rot[1, 0], rot[0, 0])
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])

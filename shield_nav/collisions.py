@@ -19,7 +19,8 @@ have avoided by remembering it. Floor and ceiling hits have no horizontal bearin
 record the heading (a fifth trajectory column, the yaw of the camera's axis; written since 2026-11-28) add two
 shares measured from the camera's axis itself: the obstacle hit lay inside the camera's horizontal view
 (``in_camera``), and the vehicle was moving more than half the field of view off its camera's axis when it hit
-(``blind``: flying sideways or backwards into space the camera did not show).
+(``blind``: flying sideways or backwards into space the camera did not show), and the median yaw rate over the
+last half second before the crash (a vehicle turning hard, searching for a way, or flying straight).
 """
 
 from __future__ import annotations
@@ -36,11 +37,14 @@ import numpy as np
 from envs.camera.config import CameraConfig
 from envs.scenes import Primitive, Scene, make_scene
 from envs.scenes.sdf import primitive_sdf
+from envs.vehicle.config import VehicleConfig
 
 THIN_RADIUS = 0.08
 """Cylinders and capsules with a smaller radius (m) are ``thin`` (poles, frame bars)."""
 MAX_HIT_DISTANCE = 0.6
 """A nearest surface farther than this (m) from the final position is ``unresolved``."""
+YAW_WINDOW_S = 0.5
+"""The window [s] before a crash over which :func:`yaw_rate_before` averages the yaw rate."""
 
 
 def primitive_class(prim: Primitive) -> str:
@@ -129,10 +133,37 @@ def camera_angles(scene: Scene, traj: np.ndarray) -> tuple[float | None, float |
     return to_obstacle, _angle_deg(axis, tr[-1, :2] - tr[-2, :2])
 
 
+def yaw_rate_before(traj: np.ndarray, times: np.ndarray, window_s: float = YAW_WINDOW_S) -> float | None:
+    """Mean absolute yaw rate [deg/s] over the last ``window_s`` of a trajectory with a heading column.
+
+    ``traj`` is ``(T, 5)`` (x, y, z, speed, heading [rad]), ``times`` its points' times [s]. The heading changes
+    between the recorded points inside the window (each wrapped to (-pi, pi]) are summed and divided by the time
+    they span. ``None`` when fewer than two points lie in the window.
+    """
+    tr, t = np.asarray(traj, dtype=np.float64), np.asarray(times, dtype=np.float64)
+    if tr.ndim != 2 or tr.shape[1] < 5 or t.shape != (len(tr),):
+        raise ValueError(f"need a trajectory (T, 5) with T times, got shapes {tr.shape} and {t.shape}")
+    k = np.flatnonzero(t >= t[-1] - window_s - 1e-9)
+    if len(k) < 2 or t[-1] <= t[k[0]]:
+        return None
+    dh = np.diff(tr[k, 4])
+    dh = (dh + np.pi) % (2.0 * np.pi) - np.pi
+    return float(np.degrees(np.abs(dh).sum() / (t[-1] - t[k[0]])))
+
+
+def point_times(steps: int, every: int, dt: float) -> np.ndarray:
+    """Times [s] of a trial's recorded trajectory points: every ``every``-th control step of ``dt`` and the last."""
+    keep = list(range(0, steps + 1, every)) + ([steps] if steps % every else [])
+    return np.asarray(keep, dtype=np.float64) * dt
+
+
 def _crashes(
-    out_dir: str, rows: list[str] | None, speeds: list[float] | None
-) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray]]]:
-    """Per unit of an eval folder: ``(row, speed)``, its scene (``None`` without crashes), the crashed trajectories."""
+    out_dir: str, rows: list[str] | None, speeds: list[float] | None, with_times: bool = False
+) -> Iterator[tuple]:
+    """Per unit of an eval folder: ``(row, speed)``, its scene (``None`` without crashes), the crashed trajectories.
+
+    With ``with_times`` a fourth item: each crashed trajectory's point times [s] (:func:`point_times`).
+    """
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
     cfg = None
     if os.path.isfile(os.path.join(out_dir, "config.yaml")):
@@ -158,7 +189,19 @@ def _crashes(
             scene = flown_scene(cfg, unit["family"], int(unit["scene"]))
         else:  # an output folder without its config: the family's default seed
             scene = make_scene(unit["family"], int(unit["scene"]))
-        yield (unit["row"], float(unit["speed"])), scene, [np.asarray(t["traj"]) for t in hits]
+        trajs = [np.asarray(t["traj"]) for t in hits]
+        if not with_times:
+            yield (unit["row"], float(unit["speed"])), scene, trajs
+            continue
+        from shield_nav.evaluation.config import EvalConfig
+
+        every = cfg.trajectory_every if cfg is not None else EvalConfig().trajectory_every
+        dt = VehicleConfig().command_dt
+        if cfg is not None:
+            from shield_nav.evaluation.rollout import nav_config
+
+            dt = nav_config(cfg, unit["family"], int(unit["scene"]), float(unit["speed"]), 1).vehicle.command_dt
+        yield (unit["row"], float(unit["speed"])), scene, trajs, [point_times(int(t["steps"]), every, dt) for t in hits]
 
 
 def breakdown(
@@ -181,16 +224,18 @@ def bearings(
     Each value holds ``n`` (crashes with a bearing), ``median_deg``, ``in_view`` (the share with a bearing below
     ``hfov_deg / 2``), ``bearings`` (class, degrees) per crash, and from the recorded heading (NaN for outputs
     without it; :func:`camera_angles`) ``in_camera``, the share of crashes whose obstacle lay within ``hfov_deg / 2``
-    of the camera's axis, and ``blind``, the share that moved more than ``hfov_deg / 2`` off it.
+    of the camera's axis, ``blind``, the share that moved more than ``hfov_deg / 2`` off it, and
+    ``yaw_rate_deg_s``, the median over the crashes of the mean yaw rate in their last :data:`YAW_WINDOW_S`.
     """
     if not 0.0 < hfov_deg < 180.0:
         raise ValueError(f"hfov_deg must be in (0, 180), got {hfov_deg}")
     found: dict[tuple[str, float], list] = defaultdict(list)
     cams: dict[tuple[str, float], list] = defaultdict(list)
     blind: dict[tuple[str, float], list] = defaultdict(list)
-    for key, scene, trajs in _crashes(out_dir, rows, speeds):
+    rates: dict[tuple[str, float], list] = defaultdict(list)
+    for key, scene, trajs, times in _crashes(out_dir, rows, speeds, with_times=True):
         found[key] += []
-        for tr in trajs:
+        for tr, tt in zip(trajs, times, strict=True):
             cls, deg = approach_bearing(scene, tr)
             if deg is not None:
                 found[key].append((cls, deg))
@@ -200,6 +245,9 @@ def bearings(
                     cams[key].append(to_obstacle)
                 if to_travel is not None:
                     blind[key].append(to_travel)
+                rate = yaw_rate_before(tr, tt)
+                if rate is not None:
+                    rates[key].append(rate)
     half = hfov_deg / 2
 
     def share(x: list) -> float:
@@ -214,6 +262,7 @@ def bearings(
             "in_view": share(list(deg)),
             "in_camera": share(cams[key]),
             "blind": 1.0 - share(blind[key]) if blind[key] else float("nan"),
+            "yaw_rate_deg_s": float(np.median(rates[key])) if rates[key] else float("nan"),
             "bearings": items,
         }
     return out
@@ -234,17 +283,22 @@ def format_bearings(result: dict[tuple[str, float], dict], hfov_deg: float) -> s
     """Markdown table of :func:`bearings`: per (row, speed) the crashes, median bearing, in-view and beside shares."""
     half = hfov_deg / 2
     lines = [f"| row | speed | n | median bearing (deg) | in view (< {half:g} deg) | beside | in the camera's view | "
-             "moving outside the camera's view |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             f"moving outside the camera's view | yaw rate, last {YAW_WINDOW_S:g} s (deg/s, median) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
 
     def pct(x: float) -> str:
         return "-" if np.isnan(x) else f"{100 * x:.0f} %"
 
+    def num(x: float) -> str:
+        return "-" if np.isnan(x) else f"{x:.0f}"
+
     for (row, speed), r in sorted(result.items()):
         if r["n"]:
             lines.append(f"| {row} | {speed:g} | {r['n']} | {r['median_deg']:.0f} | {pct(r['in_view'])} | "
-                         f"{pct(1 - r['in_view'])} | {pct(r['in_camera'])} | {pct(r['blind'])} |")  # fmt: skip
+                         f"{pct(1 - r['in_view'])} | {pct(r['in_camera'])} | {pct(r['blind'])} | "
+                         f"{num(r['yaw_rate_deg_s'])} |")  # fmt: skip
         else:
-            lines.append(f"| {row} | {speed:g} | 0 | - | - | - | - | - |")
+            lines.append(f"| {row} | {speed:g} | 0 | - | - | - | - | - | - |")
     return "\n".join(lines)
 
 
@@ -270,7 +324,7 @@ def main(argv: list[str] | None = None) -> None:
         res = bearings(a.out_dir, rows, speeds, a.hfov)
         if a.json:
             print(json.dumps([{"row": r, "speed": sp, **{k: v[k] for k in ("n", "median_deg", "in_view", "in_camera",
-                                                                            "blind")}}
+                                                                            "blind", "yaw_rate_deg_s")}}
                               for (r, sp), v in sorted(res.items())]))  # fmt: skip
         else:
             print(format_bearings(res, a.hfov))

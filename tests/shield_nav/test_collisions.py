@@ -17,7 +17,9 @@ from shield_nav.collisions import (
     format_bearings,
     format_table,
     main,
+    point_times,
     primitive_class,
+    yaw_rate_before,
 )
 
 PRIMS = (
@@ -66,6 +68,8 @@ def test_classify_hit_inclined_pole_and_unresolved_and_bad_input():
 def _unit(tmp_path, trials):
     units = tmp_path / "units"
     units.mkdir()
+    for t in trials:  # as eval.py records them: a point every 10 control steps
+        t.setdefault("steps", 10 * (len(t["traj"]) - 1))
     unit = {"row": "r", "family": "ablation", "scene": 0, "speed": 3.0, "trials": trials}
     (units / "r__ablation-00__v3.json").write_text(json.dumps(unit))
 
@@ -187,4 +191,20 @@ def test_camera_angles_and_bearings_from_the_recorded_heading(tmp_path, capsys):
     assert r["n"] == 3 and r["in_view"] == pytest.approx(2 / 3)  # travel cone: the two head-on flights
     assert r["in_camera"] == pytest.approx(1 / 3) and r["blind"] == pytest.approx(1 / 3)
     main([str(tmp_path), "--bearing"])
-    assert "| r | 3 | 3 | 0 | 67 % | 33 % | 33 % | 33 % |" in capsys.readouterr().out
+    assert "| r | 3 | 3 | 0 | 67 % | 33 % | 33 % | 33 % | 0 |" in capsys.readouterr().out  # no crash turned
+
+
+def test_yaw_rate_before_a_crash_by_hand():
+    # Points every 0.1 s (10 steps of 10 ms) and a last one 0.05 s later (steps not a multiple of 10).
+    t = point_times(65, 10, 0.01)
+    np.testing.assert_allclose(t, [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.65])
+    heading = np.array([0.0, 0.0, 0.0, 0.1, 0.2, 0.3, 0.4, 0.45])  # turning at 1 rad/s from t = 0.2 s
+    tr = np.column_stack([np.zeros((8, 4)), heading])
+    # The last 0.5 s holds the points at 0.2 ... 0.65 s: 0.45 rad in 0.45 s.
+    assert yaw_rate_before(tr, t) == pytest.approx(np.degrees(1.0))
+    # Across the +-pi seam: 3.1 -> -3.1 rad is a turn of 0.083 rad, not 6.2.
+    tr2 = np.column_stack([np.zeros((3, 4)), [3.0, 3.1, -3.1]])
+    assert yaw_rate_before(tr2, np.array([0.0, 0.1, 0.2])) == pytest.approx(np.degrees((0.1 + (2 * np.pi - 6.2)) / 0.2))
+    assert yaw_rate_before(tr2[:1], np.array([0.0])) is None  # a single point: no rate
+    with pytest.raises(ValueError, match="5"):
+        yaw_rate_before(tr2[:, :4], np.array([0.0, 0.1, 0.2]))

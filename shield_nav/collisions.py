@@ -16,11 +16,11 @@ direction to the nearest surface point of the obstacle hit. Below half the camer
 (``--hfov``, default the camera's 87 deg) the obstacle was inside the view cone around the direction of travel: a
 failure to avoid what the camera showed. Above it, the vehicle clipped something beside it, which it could only
 have avoided by remembering it. Floor and ceiling hits have no horizontal bearing and are left out. Outputs that
-record the heading (a fifth trajectory column, the yaw of the camera's axis; written since 2026-11-28) add two
-shares measured from the camera's axis itself: the obstacle hit lay inside the camera's horizontal view
-(``in_camera``), and the vehicle was moving more than half the field of view off its camera's axis when it hit
-(``blind``: flying sideways or backwards into space the camera did not show), and the median yaw rate over the
-last half second before the crash (a vehicle turning hard, searching for a way, or flying straight).
+record the heading (a fifth trajectory column, the yaw of the camera's axis; written since 2026-11-28) add three
+numbers from it: the share of crashes whose obstacle lay inside the camera's horizontal view (``in_camera``), the
+share that happened while the vehicle moved more than half the field of view off its camera's axis (``blind``:
+flying sideways or backwards into space the camera did not show), and the median yaw rate over the last half second
+before the crash (``yaw_rate_deg_s``: turning hard, or flying straight).
 """
 
 from __future__ import annotations
@@ -158,11 +158,11 @@ def point_times(steps: int, every: int, dt: float) -> np.ndarray:
 
 
 def _crashes(
-    out_dir: str, rows: list[str] | None, speeds: list[float] | None, with_times: bool = False
-) -> Iterator[tuple]:
-    """Per unit of an eval folder: ``(row, speed)``, its scene (``None`` without crashes), the crashed trajectories.
+    out_dir: str, rows: list[str] | None, speeds: list[float] | None
+) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray], list[np.ndarray]]]:
+    """Per unit of an eval folder: ``(row, speed)``, its scene, the crashed trajectories and their points' times.
 
-    With ``with_times`` a fourth item: each crashed trajectory's point times [s] (:func:`point_times`).
+    The scene is ``None`` without crashes; the times [s] come from :func:`point_times`.
     """
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
     cfg = None
@@ -189,18 +189,16 @@ def _crashes(
             scene = flown_scene(cfg, unit["family"], int(unit["scene"]))
         else:  # an output folder without its config: the family's default seed
             scene = make_scene(unit["family"], int(unit["scene"]))
-        trajs = [np.asarray(t["traj"]) for t in hits]
-        if not with_times:
-            yield (unit["row"], float(unit["speed"])), scene, trajs
-            continue
-        from shield_nav.evaluation.config import EvalConfig
-
-        every = cfg.trajectory_every if cfg is not None else EvalConfig().trajectory_every
-        dt = VehicleConfig().command_dt
         if cfg is not None:
             from shield_nav.evaluation.rollout import nav_config
 
+            every = cfg.trajectory_every
             dt = nav_config(cfg, unit["family"], int(unit["scene"]), float(unit["speed"]), 1).vehicle.command_dt
+        else:
+            from shield_nav.evaluation.config import EvalConfig
+
+            every, dt = EvalConfig().trajectory_every, VehicleConfig().command_dt
+        trajs = [np.asarray(t["traj"]) for t in hits]
         yield (unit["row"], float(unit["speed"])), scene, trajs, [point_times(int(t["steps"]), every, dt) for t in hits]
 
 
@@ -209,7 +207,7 @@ def breakdown(
 ) -> dict[tuple[str, float], Counter]:
     """(row, speed) -> Counter of hit classes over the collided trials of an eval output folder."""
     out: dict[tuple[str, float], Counter] = defaultdict(Counter)
-    for key, scene, trajs in _crashes(out_dir, rows, speeds):
+    for key, scene, trajs, _ in _crashes(out_dir, rows, speeds):
         out[key].update()  # rows without collisions still appear
         for tr in trajs:
             out[key][classify_hit(scene, tr[-1, :3])[0]] += 1
@@ -233,7 +231,7 @@ def bearings(
     cams: dict[tuple[str, float], list] = defaultdict(list)
     blind: dict[tuple[str, float], list] = defaultdict(list)
     rates: dict[tuple[str, float], list] = defaultdict(list)
-    for key, scene, trajs, times in _crashes(out_dir, rows, speeds, with_times=True):
+    for key, scene, trajs, times in _crashes(out_dir, rows, speeds):
         found[key] += []
         for tr, tt in zip(trajs, times, strict=True):
             cls, deg = approach_bearing(scene, tr)

@@ -131,14 +131,20 @@ def test_approach_bearing_has_no_angle_for_the_floor_or_a_hover_and_rejects_shor
         approach_bearing(scene, np.array([[9.5, 0.0, 1.5]]))
 
 
-def test_bearings_over_an_eval_folder_and_cli(tmp_path, capsys):
+def _box_face():
+    """Ablation scene 0, its first box's yaw, +x face normal, a point 0.19 m off that face, and the face's direction."""
     scene = make_scene("ablation", 0)
     box = next(p for p in scene.primitives if p.kind == "box")
     w, z = box.quat[0], box.quat[3]
     yaw = 2.0 * math.atan2(z, w)
-    normal = np.array([math.cos(yaw), math.sin(yaw), 0.0])  # the box's +x face normal
+    normal = np.array([math.cos(yaw), math.sin(yaw), 0.0])
     hit = np.array(box.center) + (box.half[0] + 0.19) * normal
     along = np.array([-normal[1], normal[0], 0.0])  # parallel to the face
+    return scene, yaw, normal, hit, along
+
+
+def test_bearings_over_an_eval_folder_and_cli(tmp_path, capsys):
+    _, _, normal, hit, along = _box_face()
     head_on = [[*(hit + 0.5 * normal), 3.0], [*hit, 3.0]]  # flying into the face
     grazing = [[*(hit - 0.5 * along), 3.0], [*hit, 3.0]]  # flying along it
     _unit(tmp_path, [
@@ -159,13 +165,7 @@ def test_bearings_over_an_eval_folder_and_cli(tmp_path, capsys):
 
 
 def test_camera_angles_and_bearings_from_the_recorded_heading(tmp_path, capsys):
-    scene = make_scene("ablation", 0)
-    box = next(p for p in scene.primitives if p.kind == "box")
-    w, z = box.quat[0], box.quat[3]
-    yaw = 2.0 * math.atan2(z, w)
-    normal = np.array([math.cos(yaw), math.sin(yaw), 0.0])  # the box's +x face normal
-    hit = np.array(box.center) + (box.half[0] + 0.19) * normal
-    along = np.array([-normal[1], normal[0], 0.0])
+    scene, yaw, normal, hit, along = _box_face()
     facing_box, facing_along = yaw + math.pi, yaw + math.pi / 2  # camera axis -normal, and +along
 
     def traj(p0: np.ndarray, heading: float) -> list:

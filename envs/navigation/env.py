@@ -301,14 +301,19 @@ class NavigationEnv(VectorEnv):
         self.vehicles.ext_force_w[:] = self.wind_buf + self.gust_buf
         return cmd
 
+    @property
+    def headings(self) -> np.ndarray:
+        """Heading of every vehicle (N,) [rad]: the yaw of the body x axis, the camera's axis on the ground."""
+        r = self.vehicles.R_wb
+        return np.arctan2(r[:, 1, 0], r[:, 0, 0])
+
     def action_to_command(self, action: np.ndarray) -> np.ndarray:
         """Map normalised actions (N, 4) to vehicle commands (N, 4) = [f_n, phi, theta, psi] (see class doc)."""
         a_cfg, g = self.cfg.action, self.cfg.vehicle.gravity
         a0 = action[:, 0]
         f_n = np.where(a0 >= 0, g + a0 * (a_cfg.thrust_max - g), g + a0 * (g - a_cfg.thrust_min))
         tilt = math.radians(a_cfg.max_tilt_deg)
-        r = self.vehicles.R_wb
-        psi = np.arctan2(r[:, 1, 0], r[:, 0, 0]) + action[:, 3] * math.radians(a_cfg.yaw_range_deg)
+        psi = self.headings + action[:, 3] * math.radians(a_cfg.yaw_range_deg)
         return np.stack((f_n, action[:, 1] * tilt, action[:, 2] * tilt, psi), axis=1)
 
     def command_to_action(self, command: np.ndarray) -> np.ndarray:
@@ -317,8 +322,7 @@ class NavigationEnv(VectorEnv):
         f_n = command[:, 0]
         a0 = np.where(f_n >= g, (f_n - g) / (a_cfg.thrust_max - g), (f_n - g) / (g - a_cfg.thrust_min))
         tilt = math.radians(a_cfg.max_tilt_deg)
-        r = self.vehicles.R_wb
-        d_psi = (command[:, 3] - np.arctan2(r[:, 1, 0], r[:, 0, 0]) + np.pi) % (2 * np.pi) - np.pi
+        d_psi = (command[:, 3] - self.headings + np.pi) % (2 * np.pi) - np.pi
         return np.stack((a0, command[:, 1] / tilt, command[:, 2] / tilt, d_psi / math.radians(a_cfg.yaw_range_deg)), 1)
 
     def _update_fields(self) -> None:

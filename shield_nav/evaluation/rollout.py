@@ -176,7 +176,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     pos0 = env.local_pos.copy()
     phi_start = env.field_stack.geodesic(ids, pos0)
     track_pos = [pos0]
-    track_heading = [_headings(env)]
+    track_heading = [env.headings]
     track_speed: list[np.ndarray] = []
     track_esdf = [env.field_stack.esdf(ids, pos0)]
     end_step = np.full(n, -1)
@@ -220,7 +220,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             on_step(env, t, step_active)
         pos = env.local_pos.copy()
         track_pos.append(pos)
-        track_heading.append(_headings(env))
+        track_heading.append(env.headings)
         track_speed.append(np.linalg.norm(env.vehicles.vel_w, axis=1))
         track_esdf.append(env.field_stack.esdf(ids, pos))
         for name, flag in (("success", info["success"]), ("collision", info["collision"]),
@@ -259,12 +259,6 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             rec["shield"] = {k: (v[i].item()) for k, v in sh.items()}
         records.append(rec)
     return records
-
-
-def _headings(env: Any) -> np.ndarray:
-    """Heading (yaw of the body x axis, the camera's optical axis projected on the ground) [rad] of every vehicle."""
-    r = env.vehicles.R_wb
-    return np.arctan2(r[:, 1, 0], r[:, 0, 0])
 
 
 def run_unit(spec: UnitSpec) -> dict:

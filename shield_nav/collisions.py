@@ -20,7 +20,10 @@ record the heading (a fifth trajectory column, the yaw of the camera's axis; wri
 numbers from it: the share of crashes whose obstacle lay inside the camera's horizontal view (``in_camera``), the
 share that happened while the vehicle moved more than half the field of view off its camera's axis (``blind``:
 flying sideways or backwards into space the camera did not show), and the median yaw rate over the last half second
-before the crash (``yaw_rate_deg_s``: turning hard, or flying straight).
+before the crash (``yaw_rate_deg_s``: turning hard, or flying straight). Outputs of a shielded row record, as a sixth
+column, the share of the control steps since the previous point on which the shield acted (since 2026-11-28,
+later); from it ``shield_share`` is the mean over the crashes of the share of their last half second's steps with the
+shield acting.
 """
 
 from __future__ import annotations
@@ -151,6 +154,23 @@ def yaw_rate_before(traj: np.ndarray, times: np.ndarray, window_s: float = YAW_W
     return float(np.degrees(np.abs(dh).sum() / (t[-1] - t[k[0]])))
 
 
+def shield_share_before(traj: np.ndarray, times: np.ndarray, window_s: float = YAW_WINDOW_S) -> float | None:
+    """Share of the control steps in the last ``window_s`` of a trajectory on which the shield acted.
+
+    ``traj`` is ``(T, 6)``: x, y, z, speed, heading and the share of the steps since the previous point with the
+    shield acting (a shielded row's output). The recorded intervals that end inside the window are averaged,
+    weighted by their length. ``None`` without that column or without an interval in the window.
+    """
+    tr, t = np.asarray(traj, dtype=np.float64), np.asarray(times, dtype=np.float64)
+    if tr.ndim != 2 or t.shape != (len(tr),):
+        raise ValueError(f"need a trajectory (T, C) with T times, got shapes {tr.shape} and {t.shape}")
+    if tr.shape[1] < 6 or len(tr) < 2:
+        return None
+    k = np.flatnonzero(t[1:] > t[-1] - window_s + 1e-9) + 1  # intervals (t[k-1], t[k]] ending in the window
+    w = t[k] - t[k - 1]
+    return float(np.sum(tr[k, 5] * w) / np.sum(w)) if len(k) and np.sum(w) > 0 else None
+
+
 def point_times(steps: int, every: int, dt: float) -> np.ndarray:
     """Times [s] of a trial's recorded trajectory points: every ``every``-th control step of ``dt`` and the last."""
     keep = list(range(0, steps + 1, every)) + ([steps] if steps % every else [])
@@ -223,7 +243,9 @@ def bearings(
     ``hfov_deg / 2``), ``bearings`` (class, degrees) per crash, and from the recorded heading (NaN for outputs
     without it; :func:`camera_angles`) ``in_camera``, the share of crashes whose obstacle lay within ``hfov_deg / 2``
     of the camera's axis, ``blind``, the share that moved more than ``hfov_deg / 2`` off it, and
-    ``yaw_rate_deg_s``, the median over the crashes of the mean yaw rate in their last :data:`YAW_WINDOW_S`.
+    ``yaw_rate_deg_s``, the median over the crashes of the mean yaw rate in their last :data:`YAW_WINDOW_S`, and
+    for a shielded row's output ``shield_share``, the mean over the crashes of the share of the control steps in
+    that window on which the shield acted (:func:`shield_share_before`; NaN without the column).
     """
     if not 0.0 < hfov_deg < 180.0:
         raise ValueError(f"hfov_deg must be in (0, 180), got {hfov_deg}")
@@ -231,6 +253,7 @@ def bearings(
     cams: dict[tuple[str, float], list] = defaultdict(list)
     blind: dict[tuple[str, float], list] = defaultdict(list)
     rates: dict[tuple[str, float], list] = defaultdict(list)
+    acting: dict[tuple[str, float], list] = defaultdict(list)
     for key, scene, trajs, times in _crashes(out_dir, rows, speeds):
         found[key] += []
         for tr, tt in zip(trajs, times, strict=True):
@@ -246,6 +269,9 @@ def bearings(
                 rate = yaw_rate_before(tr, tt)
                 if rate is not None:
                     rates[key].append(rate)
+            acted = shield_share_before(tr, tt)
+            if acted is not None:
+                acting[key].append(acted)
     half = hfov_deg / 2
 
     def share(x: list) -> float:
@@ -261,6 +287,7 @@ def bearings(
             "in_camera": share(cams[key]),
             "blind": 1.0 - share(blind[key]) if blind[key] else float("nan"),
             "yaw_rate_deg_s": float(np.median(rates[key])) if rates[key] else float("nan"),
+            "shield_share": float(np.mean(acting[key])) if acting[key] else float("nan"),
             "bearings": items,
         }
     return out
@@ -281,8 +308,9 @@ def format_bearings(result: dict[tuple[str, float], dict], hfov_deg: float) -> s
     """Markdown table of :func:`bearings`: per (row, speed) the crashes, median bearing, in-view and beside shares."""
     half = hfov_deg / 2
     lines = [f"| row | speed | n | median bearing (deg) | in view (< {half:g} deg) | beside | in the camera's view | "
-             f"moving outside the camera's view | yaw rate, last {YAW_WINDOW_S:g} s (deg/s, median) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             f"moving outside the camera's view | yaw rate, last {YAW_WINDOW_S:g} s (deg/s, median) | "
+             f"shield acting, last {YAW_WINDOW_S:g} s |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
 
     def pct(x: float) -> str:
         return "-" if np.isnan(x) else f"{100 * x:.0f} %"
@@ -294,9 +322,9 @@ def format_bearings(result: dict[tuple[str, float], dict], hfov_deg: float) -> s
         if r["n"]:
             lines.append(f"| {row} | {speed:g} | {r['n']} | {r['median_deg']:.0f} | {pct(r['in_view'])} | "
                          f"{pct(1 - r['in_view'])} | {pct(r['in_camera'])} | {pct(r['blind'])} | "
-                         f"{num(r['yaw_rate_deg_s'])} |")  # fmt: skip
+                         f"{num(r['yaw_rate_deg_s'])} | {pct(r['shield_share'])} |")  # fmt: skip
         else:
-            lines.append(f"| {row} | {speed:g} | 0 | - | - | - | - | - | - |")
+            lines.append(f"| {row} | {speed:g} | 0 | - | - | - | - | - | - | - |")
     return "\n".join(lines)
 
 
@@ -322,7 +350,8 @@ def main(argv: list[str] | None = None) -> None:
         res = bearings(a.out_dir, rows, speeds, a.hfov)
         if a.json:
             print(json.dumps([{"row": r, "speed": sp, **{k: v[k] for k in ("n", "median_deg", "in_view", "in_camera",
-                                                                            "blind", "yaw_rate_deg_s")}}
+                                                                            "blind", "yaw_rate_deg_s",
+                                                                            "shield_share")}}
                               for (r, sp), v in sorted(res.items())]))  # fmt: skip
         else:
             print(format_bearings(res, a.hfov))

@@ -179,6 +179,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     track_heading = [env.headings]
     track_speed: list[np.ndarray] = []
     track_esdf = [env.field_stack.esdf(ids, pos0)]
+    track_active: list[np.ndarray] = []
     end_step = np.full(n, -1)
     outcome = [""] * n
     sh = {"steps": np.zeros(n, int), "active_steps": np.zeros(n, int), "corr_sum": np.zeros(n),
@@ -213,6 +214,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             sh["solve_us_sum"][li] += out.solve_us
             sh["solve_us_max"][li] = np.maximum(sh["solve_us_max"][li], out.solve_us)
             sh["total_us_sum"][li] += out.total_us
+        track_active.append(step_active)
         obs, _, term, trunc, info = env.step(act, commands=cmd)
         priv = info
         t += 1
@@ -230,6 +232,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
                     end_step[i], outcome[i] = t, name
     P, V, E = np.stack(track_pos), np.stack(track_speed), np.stack(track_esdf)  # (T+1, n, 3), (T, n), (T+1, n)
     H = np.stack(track_heading)  # (T+1, n)
+    # Control steps with the shield acting before each position: A[t, i] = steps 0 .. t-1 (T+1, n)
+    A = np.concatenate((np.zeros((1, n)), np.cumsum(np.stack(track_active), axis=0)), axis=0)
     records = []
     every = cfg.trajectory_every
     dt = env.cfg.vehicle.command_dt
@@ -242,6 +246,10 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         m["duration"] = T * dt
         m["final_goal_dist"] = float(np.linalg.norm(pos_i[-1] - np.asarray(trial["goal"])))
         keep = list(range(0, T + 1, every)) + ([T] if T % every else [])
+        cols = [pos_i[keep], np.r_[0.0, V[:T, i]][keep, None], H[keep, i, None]]
+        if shield is not None:  # the share of the control steps since the previous point on which the shield acted
+            acted = np.diff(A[keep, i], prepend=0.0)
+            cols.append((acted / np.maximum(np.diff(keep, prepend=0), 1))[:, None])
         rec = {
             **trial,
             "row": spec.row_name,
@@ -251,9 +259,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             "outcome": outcome[i],
             "steps": T,
             "metrics": m,
-            "traj": np.round(
-                np.concatenate((pos_i[keep], np.r_[0.0, V[:T, i]][keep, None], H[keep, i, None]), axis=1), 3
-            ).tolist(),  # fmt: skip
+            "traj": np.round(np.concatenate(cols, axis=1), 3).tolist(),
         }
         if shield is not None:
             rec["shield"] = {k: (v[i].item()) for k, v in sh.items()}

@@ -19,6 +19,7 @@ from shield_nav.collisions import (
     main,
     point_times,
     primitive_class,
+    shield_share_before,
     yaw_rate_before,
 )
 
@@ -191,7 +192,35 @@ def test_camera_angles_and_bearings_from_the_recorded_heading(tmp_path, capsys):
     assert r["n"] == 3 and r["in_view"] == pytest.approx(2 / 3)  # travel cone: the two head-on flights
     assert r["in_camera"] == pytest.approx(1 / 3) and r["blind"] == pytest.approx(1 / 3)
     main([str(tmp_path), "--bearing"])
-    assert "| r | 3 | 3 | 0 | 67 % | 33 % | 33 % | 33 % | 0 |" in capsys.readouterr().out  # no crash turned
+    # no crash turned; no shield column: no shield share
+    assert "| r | 3 | 3 | 0 | 67 % | 33 % | 33 % | 33 % | 0 | - |" in capsys.readouterr().out
+
+
+def test_shield_share_before_a_crash_by_hand(tmp_path, capsys):
+    # Points at 0, 0.1, ..., 0.6 and 0.65 s; the sixth column is the share of the steps since the previous point
+    # with the shield acting.
+    t = point_times(65, 10, 0.01)
+    share = np.array([0.0, 1.0, 1.0, 0.0, 0.5, 0.5, 1.0, 0.4])
+    tr = np.column_stack([np.zeros((8, 5)), share])
+    # Intervals ending in the last 0.5 s (after 0.15 s): (0.1, 0.2] ... (0.6, 0.65], lengths 0.1 x 5 and 0.05.
+    want = (0.1 * (1.0 + 0.0 + 0.5 + 0.5 + 1.0) + 0.05 * 0.4) / 0.55
+    assert shield_share_before(tr, t) == pytest.approx(want)
+    assert shield_share_before(tr[:, :5], t) is None  # an unshielded row's output
+    assert shield_share_before(tr[:1], t[:1]) is None
+    with pytest.raises(ValueError, match="times"):
+        shield_share_before(tr, t[:3])
+    # Over a folder: the mean of the crashes' shares; successes do not count.
+    _, yaw, normal, hit, _ = _box_face()
+    p0 = [*(hit + 0.5 * normal), 3.0, yaw + math.pi]
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "collision", "traj": [[*p0, 0.0], [*hit, 3.0, yaw + math.pi, 1.0]]},
+        {"trial": 1, "outcome": "collision", "traj": [[*p0, 0.0], [*hit, 3.0, yaw + math.pi, 0.5]]},
+        {"trial": 2, "outcome": "success", "traj": [[*p0, 0.0], [*hit, 3.0, yaw + math.pi, 0.0]]},
+    ])  # fmt: skip
+    assert bearings(str(tmp_path))[("r", 3.0)]["shield_share"] == pytest.approx(0.75)
+    main([str(tmp_path), "--bearing", "--json"])
+    (row,) = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert row["shield_share"] == pytest.approx(0.75)
 
 
 def test_yaw_rate_before_a_crash_by_hand():

@@ -580,8 +580,19 @@ def test_row_shield_overrides_change_that_rows_shield_only(tmp_path):
              "rows.blind.shield_overrides.point_filter=[0.0,0.01]"]  # fmt: skip
     cfg = tiny_cfg("configurations=[shield_only,blind]", *blind)
     specs = {s.row_name: s for s in E.plan_units(E.prepare(cfg))}
-    active = {n: sum(t["shield"]["active_steps"] for t in E.run_unit(spec)["trials"]) for n, spec in specs.items()}
+    trials = {n: E.run_unit(spec)["trials"] for n, spec in specs.items()}
+    active = {n: sum(t["shield"]["active_steps"] for t in ts) for n, ts in trials.items()}
     assert active["shield_only"] > 0 and active["blind"] == 0
+    # A shielded row's trajectory points carry the share of the steps since the previous point with the shield
+    # acting: weighted by those steps they add up to the trial's own count of active steps.
+    every = cfg.trajectory_every
+    for ts in trials.values():
+        for t in ts:
+            tr = np.asarray(t["traj"])
+            keep = [*range(0, t["steps"] + 1, every)] + ([t["steps"]] if t["steps"] % every else [])
+            assert tr.shape == (len(keep), 6) and tr[0, 5] == 0.0 and np.all((tr[:, 5] >= 0) & (tr[:, 5] <= 1))
+            acted = np.sum(tr[1:, 5] * np.diff(keep))
+            assert acted == pytest.approx(t["shield"]["active_steps"], abs=5e-4 * every * len(keep))
     assert E.BUILTIN_ROWS["full_paper_shield"].shield_overrides["active_set_iterations"] == 0
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides: unknown key\(s\) \['alpha2'\]"):
         E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.alpha2=1.0"))

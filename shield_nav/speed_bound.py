@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from shield_nav.expert import windowed_curvature
+
 RESAMPLE_DS = 0.25
 """Spacing [m] at which a flown path is resampled by arc length before its curvature is measured."""
 CURVATURE_WINDOW = 4
@@ -94,25 +96,6 @@ def resample(points: np.ndarray, ds: float) -> np.ndarray:
     return np.stack([np.interp(t, s, p[:, i]) for i in range(3)], axis=1)
 
 
-def path_curvature(points: np.ndarray, window: int) -> np.ndarray:
-    """Curvature (M,) at the samples of an evenly resampled path (M, 3).
-
-    The turning angle between the directions ``window`` segments before and after each sample, over the arc between
-    their midpoints (a circle of radius R gives 1 / R).
-    """
-    seg = np.diff(points, axis=0)
-    seglen = np.linalg.norm(seg, axis=1)
-    tan = seg / np.maximum(seglen, 1e-12)[:, None]
-    n_seg = len(seg)
-    idx = np.arange(n_seg + 1)
-    a = np.clip(idx - window, 0, n_seg - 1)
-    b = np.clip(idx + window - 1, 0, n_seg - 1)
-    angle = np.arccos(np.clip(np.einsum("kc,kc->k", tan[a], tan[b]), -1.0, 1.0))
-    cum = np.concatenate(([0.0], np.cumsum(seglen)))
-    arc = 0.5 * (cum[a] + cum[a + 1]) - 0.5 * (cum[b] + cum[b + 1])
-    return np.where(b > a, angle / np.maximum(np.abs(arc), 1e-12), 0.0)
-
-
 def flight_ceiling(points: np.ndarray, v_max: float, accel: float, lag: float,
                    ds: float = RESAMPLE_DS, window: int = CURVATURE_WINDOW) -> dict[str, float]:  # fmt: skip
     """The ceiling of one flown path (M, 3): ``length`` [m], ``bound`` and ``straight`` mean speeds [m/s].
@@ -123,7 +106,7 @@ def flight_ceiling(points: np.ndarray, v_max: float, accel: float, lag: float,
     pts = resample(points, ds)
     step = float(np.linalg.norm(pts[1] - pts[0]))
     length = step * (len(pts) - 1)
-    kappa = path_curvature(pts, window)
+    kappa = windowed_curvature(pts[None], window)[0]
     t_bend = profile_time(time_optimal_profile(kappa, step, v_max, accel), step) + lag
     t_line = profile_time(time_optimal_profile(np.zeros_like(kappa), step, v_max, accel), step) + lag
     return {"length": length, "bound": length / t_bend, "straight": length / t_line}
@@ -161,9 +144,9 @@ def ceilings(
     out = []
     for (row, speed), flights in sorted(groups.items()):
         n = len(flights)
-        realised = np.array([f[0] for f in flights]) / speed if n else np.array([])
-        bound = np.array([f[1]["bound"] for f in flights]) / speed if n else np.array([])
-        straight = np.array([f[1]["straight"] for f in flights]) / speed if n else np.array([])
+        realised = np.array([f[0] for f in flights]) / speed
+        bound = np.array([f[1]["bound"] for f in flights]) / speed
+        straight = np.array([f[1]["straight"] for f in flights]) / speed
 
         def mean(x: np.ndarray) -> float | None:
             return float(x.mean()) if len(x) else None

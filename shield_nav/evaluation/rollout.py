@@ -214,7 +214,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             sh["solve_us_sum"][li] += out.solve_us
             sh["solve_us_max"][li] = np.maximum(sh["solve_us_max"][li], out.solve_us)
             sh["total_us_sum"][li] += out.total_us
-        track_active.append(step_active)
+            track_active.append(step_active)
         obs, _, term, trunc, info = env.step(act, commands=cmd)
         priv = info
         t += 1
@@ -232,8 +232,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
                     end_step[i], outcome[i] = t, name
     P, V, E = np.stack(track_pos), np.stack(track_speed), np.stack(track_esdf)  # (T+1, n, 3), (T, n), (T+1, n)
     H = np.stack(track_heading)  # (T+1, n)
-    # Control steps with the shield acting before each position: A[t, i] = steps 0 .. t-1 (T+1, n)
-    A = np.concatenate((np.zeros((1, n)), np.cumsum(np.stack(track_active), axis=0)), axis=0)
+    if shield is not None:  # control steps with the shield acting before each position: steps 0 .. t-1 (T+1, n)
+        A = np.concatenate((np.zeros((1, n)), np.cumsum(np.stack(track_active), axis=0)), axis=0)
     records = []
     every = cfg.trajectory_every
     dt = env.cfg.vehicle.command_dt

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
+from shield_nav.expert import windowed_curvature
 from shield_nav.speed_bound import (
     DEFAULT_ACCEL,
     flight_ceiling,
     main,
-    path_curvature,
     profile_time,
     resample,
     time_optimal_profile,
@@ -73,10 +73,10 @@ def test_profile_time_is_exact_for_constant_acceleration_and_refuses_standing_st
         profile_time(np.zeros(3), ds)
 
 
-def test_resample_and_curvature_by_hand():
+def test_resample_and_the_curvature_it_feeds_by_hand():
     pts = resample(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]), 0.25)
     assert len(pts) == 9 and np.allclose(pts[4], [1.0, 0.0, 0.0]) and np.allclose(pts[-1], [1.0, 1.0, 0.0])
-    k = path_curvature(pts, 1)
+    k = windowed_curvature(pts[None], 1)[0]
     # The corner: 90 deg between the segments either side, whose midpoints lie 0.25 m of arc apart.
     assert k[4] == pytest.approx((math.pi / 2) / 0.25)
     assert k[1] == pytest.approx(0.0) and k[7] == pytest.approx(0.0)

@@ -1,6 +1,7 @@
 """How fast could this vehicle fly the routes that were flown? A ceiling for the realised speed of an evaluation.
 
-``python -m shield_nav.speed_bound <eval_out> [--rows expert] [--speeds 7] [--accel 11.7] [--lag 0.154] [--json]``
+``python -m shield_nav.speed_bound <eval_out> [<eval_out> ...] [--rows expert] [--speeds 7] [--accel 11.7]
+[--lag 0.154] [--json] [--plot PNG]``
 
 reads the successful trials of an ``eval.py`` output folder (their recorded trajectories, one point every
 ``trajectory_every`` control steps) and asks, for each, how fast a vehicle at the limits of this airframe could
@@ -157,10 +158,44 @@ def ceilings(
     return out
 
 
+def plot(result: list[dict[str, Any]], path: str, title: str = "") -> None:
+    """Per row, realised speed, the route's ceiling and the start-only ceiling against the target speed (x target)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sorted({r["row"] for r in result})
+    fig, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 3.4), squeeze=False, sharey=True)
+    for ax, row in zip(axes[0], rows, strict=True):
+        pts = sorted((r for r in result if r["row"] == row and r["successes"]), key=lambda r: r["speed"])
+        v = [r["speed"] for r in pts]
+        ax.plot(v, [r["straight"] for r in pts], "o:", color="0.5", label="straight route (start from hover)")
+        ax.plot(v, [r["bound"] for r in pts], "s--", color="tab:blue", label="ceiling on the flown routes")
+        ax.plot(v, [r["realised"] for r in pts], "o-", color="tab:red", label="realised (successes)")
+        ax.axhline(pts[0]["bar"] if pts else 0.85, color="k", lw=0.8, alpha=0.5)
+        ax.set_title(row)
+        ax.set_xlabel("target speed [m/s]")
+        ax.set_xticks(v)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("mean speed / target")
+    axes[0][-1].legend(loc="lower left", fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line (module docstring)."""
     ap = argparse.ArgumentParser(prog="python -m shield_nav.speed_bound", description=__doc__.split("\n")[0])
-    ap.add_argument("out_dir", help="an eval.py output folder")
+    ap.add_argument(
+        "out_dirs",
+        nargs="+",
+        metavar="out_dir",
+        help="eval.py output folders (their rows are reported together; a row and speed twice is refused)",
+    )
     ap.add_argument("--rows", default=None, help="comma-separated rows (default: all)")
     ap.add_argument("--speeds", default=None, help="comma-separated target speeds (default: all)")
     ap.add_argument(
@@ -177,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--bar", type=float, default=0.85, help="realised speed bar, share of the target (default 0.85)")
     ap.add_argument("--json", action="store_true", help="one JSON line per row and speed instead of a table")
+    ap.add_argument("--plot", default=None, metavar="PNG", help="also draw the shares against the target speed")
     args = ap.parse_args(argv)
     if not args.accel > 0 or not math.isfinite(args.accel):
         ap.error(f"--accel must be a finite number > 0, got {args.accel}")
@@ -187,11 +223,18 @@ def main(argv: list[str] | None = None) -> int:
         speeds = [float(s) for s in args.speeds.split(",")] if args.speeds else None
     except ValueError:
         ap.error(f"--speeds takes comma-separated numbers, got {args.speeds!r}")
+    result: list[dict[str, Any]] = []
     try:
-        result = ceilings(args.out_dir, rows, speeds, args.accel, args.lag, args.bar)
+        for out_dir in args.out_dirs:
+            for r in ceilings(out_dir, rows, speeds, args.accel, args.lag, args.bar):
+                if any((q["row"], q["speed"]) == (r["row"], r["speed"]) for q in result):
+                    raise ValueError(f"row {r['row']!r} at {r['speed']:g} m/s is in more than one folder ({out_dir!r})")
+                result.append(r)
     except (FileNotFoundError, ValueError) as exc:
         print(f"speed_bound: {exc}", file=sys.stderr)
         return 2
+    if args.plot:
+        plot(result, args.plot, title=", ".join(os.path.basename(os.path.normpath(d)) for d in args.out_dirs))
     if args.json:
         for r in result:
             print(json.dumps(r))

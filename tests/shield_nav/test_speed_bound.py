@@ -110,6 +110,22 @@ def test_cli_reads_successes_of_an_eval_folder(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["below_bar"] == 1.0
 
 
+def test_cli_merges_folders_refuses_a_row_twice_and_draws(tmp_path, capsys):
+    line = [[float(x), 0.0, 2.0, 7.0, 0.0] for x in np.linspace(0.0, 60.0, 121)]
+    a, b = tmp_path / "a", tmp_path / "b"
+    write_unit(a, 7.0, [{"trial": 0, "outcome": "success", "metrics": {"mean_speed": 5.6}, "traj": line}])
+    write_unit(b, 5.0, [{"trial": 0, "outcome": "success", "metrics": {"mean_speed": 4.5}, "traj": line}])
+    png = tmp_path / "ceiling.png"
+    assert main([str(a), str(b), "--json", "--plot", str(png)]) == 0
+    out = [json.loads(x) for x in capsys.readouterr().out.strip().splitlines()]
+    assert [(r["speed"], r["realised"]) for r in out] == [(7.0, pytest.approx(0.8)), (5.0, pytest.approx(0.9))]
+    from matplotlib.image import imread
+
+    assert imread(str(png)).shape[:2] == (408, 504)  # one row's panel at 120 dpi
+    assert main([str(a), str(a)]) == 2
+    assert "in more than one folder" in capsys.readouterr().err
+
+
 def test_cli_names_bad_input(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     assert "no unit files" in capsys.readouterr().err

@@ -46,6 +46,7 @@ import numpy as np
 
 from envs.config import require
 from envs.fields.lookup import trilinear_point
+from shield_nav.preview import PreviewGains, timed_reference
 from shield_nav.tracking import accel_to_command
 
 
@@ -153,7 +154,9 @@ class ExpertConfig:
     """Reference direction: ``chord`` (pure pursuit: towards the path point ``max(lookahead_min, |v| lookahead_s)``
     ahead; cuts inside bends by the chord's sagitta) or ``tangent`` (the path's direction between the reference
     sample and ``tangent_span`` samples after it, plus ``k_x`` times the offset of the reference sample from the
-    position predicted ``lag_s`` ahead)."""
+    position predicted ``lag_s`` ahead); or ``preview``: receding-horizon LQ tracking of the timed path on the
+    attitude loop's first-order model (:mod:`shield_nav.preview`, keys ``preview_*``; ``k_v``, ``k_x``,
+    ``ff_gain``, ``drag_ff`` and the look-ahead keys are then unused)."""
     tangent_span: int = 2
     """Samples over which the ``tangent`` tracker measures the path direction."""
     k_x: float = 2.0
@@ -168,6 +171,25 @@ class ExpertConfig:
     """Weight of the drag feedforward: the vehicle model's nominal drag at the current velocity (rotor drag in the
     body frame and parasitic drag, ``vehicle.airframe``) added to the commanded acceleration, so the velocity loop
     does not settle ``drag / k_v`` short of the reference (0: off)."""
+    preview_tau: float = 0.2
+    """``preview``: time constant of the model's thrust-vector response [s] (a fit gave 0.15 s after a 20 ms delay,
+    docs/lab-log.md 2026-11-27; 0.2 s, which also stands for the delay, tracked better on the screen of 2026-11-28)."""
+    preview_dt: float = 0.04
+    """``preview``: interval of the model's held inputs [s]."""
+    preview_steps: int = 20
+    """``preview``: intervals in the horizon (horizon = ``preview_steps * preview_dt``)."""
+    preview_q_pos: float = 1.0
+    """``preview``: weight of the position error [1/m^2]."""
+    preview_q_vel: float = 0.3
+    """``preview``: weight of the velocity error [s^2/m^2]."""
+    preview_r_acc: float = 0.001
+    """``preview``: weight of the commanded acceleration [s^4/m^2]."""
+    preview_r_jerk: float = 0.003
+    """``preview``: weight of each change of the command between intervals (the first from the acceleration now)."""
+    preview_accel: float = 8.0
+    """``preview``: acceleration with which the reference speeds up along the path from the current speed [m/s^2]."""
+    preview_drag: float = 1.0
+    """``preview``: share of the nominal drag (:func:`drag_accel`) the model carries as a known disturbance."""
     max_tilt_deg: float = 48.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50)."""
     visibility: str = "map"
@@ -192,12 +214,16 @@ class ExpertConfig:
             "lookahead_min",
             "flat_slope",
             "ff_window",
+            "preview_tau",
+            "preview_dt",
+            "preview_accel",
         ):
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
                      "narrow_weight", "drag_ff", "commit_dist", "commit_max_dev", "commit_blend",
-                     "commit_slack", "predict_s", "predict_min_speed", "route_tol"):  # fmt: skip
+                     "commit_slack", "predict_s", "predict_min_speed", "route_tol", "preview_q_pos",
+                     "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -221,6 +247,11 @@ class ExpertConfig:
         require(0 < self.max_tilt_deg < 60, f"{prefix}max_tilt_deg", "must be in (0, 60)")
         require(self.tracker in TRACKERS, f"{prefix}tracker", f"unknown tracker {self.tracker!r}; expected one of "
                 f"{TRACKERS}")  # fmt: skip
+        require(self.preview_steps >= 1, f"{prefix}preview_steps", f"must be >= 1, got {self.preview_steps}")
+        require(self.preview_q_pos + self.preview_q_vel > 0, f"{prefix}preview_q_pos",
+                "preview_q_pos + preview_q_vel must be > 0 (nothing would be tracked)")  # fmt: skip
+        require(self.preview_r_acc + self.preview_r_jerk > 0, f"{prefix}preview_r_acc",
+                "preview_r_acc + preview_r_jerk must be > 0 (the problem would have no unique minimiser)")  # fmt: skip
         require(self.tangent_span >= 1, f"{prefix}tangent_span", f"must be >= 1, got {self.tangent_span}")
         require(self.k_x >= 0, f"{prefix}k_x", f"must be >= 0, got {self.k_x}")
         require(self.visibility in VISIBILITIES, f"{prefix}visibility", f"unknown visibility {self.visibility!r}; "
@@ -293,7 +324,7 @@ def _trace_kernel(
             x, y, z = x + ds * ux, y + ds * uy, z + ds * uz
 
 
-TRACKERS = ("chord", "tangent")
+TRACKERS = ("chord", "tangent", "preview")
 """Reference directions of the tracker (:attr:`ExpertConfig.tracker`)."""
 
 VISIBILITIES = ("map", "camera")
@@ -469,6 +500,20 @@ class PlannerController:
         self.committed = np.zeros(0, dtype=bool)
         """(N,) bool of the last trace: envs that fly the committed path (``commit_dist``)."""
         self._memory: tuple | None = None
+        ec = self.ec
+        self.gains = (
+            PreviewGains.build(
+                ec.preview_tau,
+                ec.preview_dt,
+                ec.preview_steps,
+                ec.preview_q_pos,
+                ec.preview_q_vel,
+                ec.preview_r_acc,
+                ec.preview_r_jerk,
+            )  # fmt: skip
+            if ec.tracker == "preview"
+            else None
+        )
 
     def reset(self, env: Any) -> None:
         """Forget the remembered paths (``commit_dist``); the planning fields are built on first use and kept."""
@@ -744,6 +789,8 @@ class PlannerController:
         k_la = np.clip(np.round(np.maximum(ec.lookahead_min, speed * ec.lookahead_s) / ec.ds).astype(int),
                        k_ref + 1, kp1 - 1)  # fmt: skip
         v_r = v_prof[rows, k_ref]
+        if ec.tracker == "preview":
+            return self._preview(env, plan, k_ref)
         if ec.tracker == "tangent":
             k_b = np.minimum(k_ref + ec.tangent_span, kp1 - 1)
             chord = _unit(path[rows, k_b] - path[rows, k_ref])
@@ -763,3 +810,28 @@ class PlannerController:
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a, "k_ref": k_ref}
         return accel_to_command(a, psi, track, env.cfg.vehicle.gravity)
+
+    def _preview(self, env: Any, plan: dict[str, np.ndarray], k_ref: np.ndarray) -> np.ndarray:
+        """Commands of the ``preview`` tracker (:mod:`shield_nav.preview`)."""
+        ec = self.ec
+        path, v_prof = plan["path"], plan["speed"]
+        pos, vel = env.local_pos, env.vehicles.vel_w
+        veh = env.vehicles
+        r_wb = veh.R_wb
+        g = env.cfg.vehicle.gravity
+        # The model's state: position, velocity and the thrust vector's acceleration now (gravity removed).
+        a_thr = r_wb[:, :, 2] * (veh.motor_thrust_buf.sum(axis=1) / veh.nominal_mass)[:, None]
+        a_thr[:, 2] -= g
+        ref_p, ref_v = timed_reference(path, v_prof, np.linalg.norm(vel, axis=1), ec.preview_accel, ec.preview_dt,
+                                       ec.preview_steps)  # fmt: skip
+        ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(pos), 3, -1)  # (N, 3, 2 steps)
+        x0 = np.stack((pos, vel, a_thr), axis=2)  # (N, 3 axes, [p, v, a])
+        d = ec.preview_drag * drag_accel(vel, r_wb, env.cfg.vehicle.airframe)
+        a = self.gains.first_input(ref, x0, d, a_thr)
+        rows = np.arange(len(pos))
+        k_b = np.minimum(k_ref + ec.tangent_span, path.shape[1] - 1)
+        chord = _unit(path[rows, k_b] - path[rows, k_ref])
+        psi = np.arctan2(chord[:, 1], chord[:, 0])
+        track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
+        self.last = {**plan, "v_ref": ref_v[:, 0], "a": a, "k_ref": k_ref}
+        return accel_to_command(a, psi, track, g)

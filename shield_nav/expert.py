@@ -822,13 +822,16 @@ class PlannerController:
         # The model's state: position, velocity and the thrust vector's acceleration now (gravity removed).
         a_thr = r_wb[:, :, 2] * (veh.motor_thrust_buf.sum(axis=1) / veh.nominal_mass)[:, None]
         a_thr[:, 2] -= g
-        ref_p, ref_v = timed_reference(path, v_prof, np.linalg.norm(vel, axis=1), ec.preview_accel, ec.preview_dt,
-                                       ec.preview_steps)  # fmt: skip
+        # The reference starts from the vehicle's speed along the path (not |v|: after a turn of the route the
+        # vehicle does not yet move along it).
+        rows = np.arange(len(pos))
+        ahead = _unit(path[rows, min(ec.tangent_span, path.shape[1] - 1)] - path[:, 0])
+        along = np.maximum(np.einsum("ni,ni->n", vel, ahead), 0.0)
+        ref_p, ref_v = timed_reference(path, v_prof, along, ec.preview_accel, ec.preview_dt, ec.preview_steps)
         ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(pos), 3, -1)  # (N, 3, 2 steps)
         x0 = np.stack((pos, vel, a_thr), axis=2)  # (N, 3 axes, [p, v, a])
         d = ec.preview_drag * drag_accel(vel, r_wb, env.cfg.vehicle.airframe)
         a = self.gains.first_input(ref, x0, d, a_thr)
-        rows = np.arange(len(pos))
         k_b = np.minimum(k_ref + ec.tangent_span, path.shape[1] - 1)
         chord = _unit(path[rows, k_b] - path[rows, k_ref])
         psi = np.arctan2(chord[:, 1], chord[:, 0])

@@ -136,8 +136,8 @@ def test_timed_reference_stops_at_the_paths_end():
 
 
 def test_preview_tracker_commands_the_gains_first_input():
-    """tracker: preview: the expert's acceleration is the LQ first input for its timed plan and the vehicle's
-    position, velocity and thrust acceleration, with the nominal drag."""
+    """tracker: preview: the expert's acceleration is the LQ first input for its plan timed from the vehicle's
+    speed along it, and the vehicle's position, velocity and thrust acceleration, with the nominal drag."""
     env = _env(n=4, speed=5.0)
     env.vehicles.vel_w[:] = np.array([3.0, 0.4, 0.0])
     ec = ExpertConfig(tracker="preview")
@@ -147,8 +147,13 @@ def test_preview_tracker_commands_the_gains_first_input():
     veh = env.vehicles
     a_thr = veh.R_wb[:, :, 2] * veh.motor_thrust_buf.sum(axis=1, keepdims=True) / veh.nominal_mass
     a_thr[:, 2] -= env.cfg.vehicle.gravity
-    ref_p, ref_v = timed_reference(last["path"], last["speed"], np.linalg.norm(veh.vel_w, axis=1),
-                                   ec.preview_accel, ec.preview_dt, ec.preview_steps)  # fmt: skip
+    path = last["path"]
+    ahead = path[:, ec.tangent_span] - path[:, 0]
+    ahead /= np.linalg.norm(ahead, axis=1, keepdims=True)
+    along = np.maximum((veh.vel_w * ahead).sum(axis=1), 0.0)  # the speed along the path, not |v|
+    assert np.all(along < np.linalg.norm(veh.vel_w, axis=1))
+    ref_p, ref_v = timed_reference(path, last["speed"], along, ec.preview_accel, ec.preview_dt,
+                                   ec.preview_steps)  # fmt: skip
     gains = PreviewGains.build(ec.preview_tau, ec.preview_dt, ec.preview_steps, ec.preview_q_pos, ec.preview_q_vel,
                                ec.preview_r_acc, ec.preview_r_jerk)  # fmt: skip
     drag = drag_accel(veh.vel_w, veh.R_wb, env.cfg.vehicle.airframe)

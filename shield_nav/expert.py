@@ -155,8 +155,9 @@ class ExpertConfig:
     ahead; cuts inside bends by the chord's sagitta) or ``tangent`` (the path's direction between the reference
     sample and ``tangent_span`` samples after it, plus ``k_x`` times the offset of the reference sample from the
     position predicted ``lag_s`` ahead); or ``preview``: receding-horizon LQ tracking of the timed path on the
-    attitude loop's first-order model (:mod:`shield_nav.preview`, keys ``preview_*``; ``k_v``, ``k_x``,
-    ``ff_gain``, ``drag_ff`` and the look-ahead keys are then unused)."""
+    attitude loop's first-order model (:mod:`shield_nav.preview`, keys ``preview_*``), except in envs that descend
+    the narrow field (box mazes, where the path can shrink and turn from step to step at a crawl), which get the
+    ``tangent`` command."""
     tangent_span: int = 2
     """Samples over which the ``tangent`` tracker measures the path direction."""
     k_x: float = 2.0
@@ -789,9 +790,7 @@ class PlannerController:
         k_la = np.clip(np.round(np.maximum(ec.lookahead_min, speed * ec.lookahead_s) / ec.ds).astype(int),
                        k_ref + 1, kp1 - 1)  # fmt: skip
         v_r = v_prof[rows, k_ref]
-        if ec.tracker == "preview":
-            return self._preview(env, plan, k_ref)
-        if ec.tracker == "tangent":
+        if ec.tracker in ("tangent", "preview"):  # preview: the tangent command where the narrow field is flown
             k_b = np.minimum(k_ref + ec.tangent_span, kp1 - 1)
             chord = _unit(path[rows, k_b] - path[rows, k_ref])
             v_ref = v_r[:, None] * chord + ec.k_x * (path[rows, k_ref] - (pos + vel * ec.lag_s))
@@ -806,35 +805,31 @@ class PlannerController:
         a = a_ff + ec.k_v * (v_ref - vel)
         if ec.drag_ff > 0:
             a = a - ec.drag_ff * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
+        if ec.tracker == "preview":
+            a_p, v_p = self._preview(env, plan)
+            wide = ~self.fallback[:, None]
+            a, v_ref = np.where(wide, a_p, a), np.where(wide, v_p, v_ref)
         psi = np.arctan2(chord[:, 1], chord[:, 0])
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a, "k_ref": k_ref}
         return accel_to_command(a, psi, track, env.cfg.vehicle.gravity)
 
-    def _preview(self, env: Any, plan: dict[str, np.ndarray], k_ref: np.ndarray) -> np.ndarray:
-        """Commands of the ``preview`` tracker (:mod:`shield_nav.preview`)."""
+    def _preview(self, env: Any, plan: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""
         ec = self.ec
         path, v_prof = plan["path"], plan["speed"]
         pos, vel = env.local_pos, env.vehicles.vel_w
         veh = env.vehicles
         r_wb = veh.R_wb
-        g = env.cfg.vehicle.gravity
         # The model's state: position, velocity and the thrust vector's acceleration now (gravity removed).
         a_thr = r_wb[:, :, 2] * (veh.motor_thrust_buf.sum(axis=1) / veh.nominal_mass)[:, None]
-        a_thr[:, 2] -= g
+        a_thr[:, 2] -= env.cfg.vehicle.gravity
         # The reference starts from the vehicle's speed along the path (not |v|: after a turn of the route the
         # vehicle does not yet move along it).
-        rows = np.arange(len(pos))
-        ahead = _unit(path[rows, min(ec.tangent_span, path.shape[1] - 1)] - path[:, 0])
+        ahead = _unit(path[:, min(ec.tangent_span, path.shape[1] - 1)] - path[:, 0])
         along = np.maximum(np.einsum("ni,ni->n", vel, ahead), 0.0)
         ref_p, ref_v = timed_reference(path, v_prof, along, ec.preview_accel, ec.preview_dt, ec.preview_steps)
         ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(pos), 3, -1)  # (N, 3, 2 steps)
         x0 = np.stack((pos, vel, a_thr), axis=2)  # (N, 3 axes, [p, v, a])
         d = ec.preview_drag * drag_accel(vel, r_wb, env.cfg.vehicle.airframe)
-        a = self.gains.first_input(ref, x0, d, a_thr)
-        k_b = np.minimum(k_ref + ec.tangent_span, path.shape[1] - 1)
-        chord = _unit(path[rows, k_b] - path[rows, k_ref])
-        psi = np.arctan2(chord[:, 1], chord[:, 0])
-        track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
-        self.last = {**plan, "v_ref": ref_v[:, 0], "a": a, "k_ref": k_ref}
-        return accel_to_command(a, psi, track, g)
+        return self.gains.first_input(ref, x0, d, a_thr), ref_v[:, 0]

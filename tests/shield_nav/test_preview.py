@@ -157,12 +157,30 @@ def test_preview_tracker_commands_the_gains_first_input():
     gains = PreviewGains.build(ec.preview_tau, ec.preview_dt, ec.preview_steps, ec.preview_q_pos, ec.preview_q_vel,
                                ec.preview_r_acc, ec.preview_r_jerk)  # fmt: skip
     drag = drag_accel(veh.vel_w, veh.R_wb, env.cfg.vehicle.airframe)
+    assert not ctrl.fallback.any()  # open training scenes: every env flies the inflated field
     for i in range(4):
         for ax in range(3):
             ref = np.stack((ref_p[i, :, ax], ref_v[i, :, ax]), axis=1).reshape(-1)
             x0 = np.array([env.local_pos[i, ax], veh.vel_w[i, ax], a_thr[i, ax]])
             u = gains.first_input(ref, x0, drag[i, ax], a_thr[i, ax])
             assert last["a"][i, ax] == pytest.approx(u, abs=1e-9)
+
+
+def test_preview_tracker_hands_the_narrow_field_to_the_tangent_tracker():
+    """Where the inflated field closes the way (benchmark scene 14, a box maze) the expert descends the narrow field;
+    there the preview tracker's command is the tangent tracker's, for the same plan."""
+    env = NavigationEnv(num_envs=4, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
+                                       "curriculum.enabled": False})  # fmt: skip
+    env.reset(seed=2)
+    env.vehicles.vel_w[:] = np.array([1.0, -0.5, 0.0])
+    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="preview")))
+    cmd_p = prev.commands(env)
+    tang = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent")))
+    cmd_t = tang.commands(env)
+    assert prev.fallback.all()
+    np.testing.assert_allclose(prev.last["path"], tang.last["path"], atol=1e-12)
+    np.testing.assert_allclose(cmd_p, cmd_t, atol=1e-12)
+    np.testing.assert_allclose(prev.last["a"], tang.last["a"], atol=1e-12)
 
 
 def test_preview_tracker_flies_the_open_scenes():

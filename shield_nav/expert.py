@@ -25,7 +25,9 @@ rest numpy over envs):
    ``a = a_ff + k_v (v_ref - v)``, turned into thrust and attitude with the tilt and thrust limits of
    :class:`shield_nav.tracking.TrackingConfig` overridden by ``max_tilt_deg``. Yaw follows the chord, so the
    camera looks along the path. ``drag_ff`` > 0 adds that share of the vehicle model's drag at the current velocity
-   (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward").
+   (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward"). ``tracker: preview``
+   (off by default) instead chooses ``a`` by receding-horizon LQ tracking of the path timed by its profile, on the
+   inner loop's first-order model (:mod:`shield_nav.preview`; envs on the narrow field keep the tangent command).
 
 With ``commit_dist`` 0 the expert is stateless: its command depends only on the current state, so it labels any
 state a student reaches (DAgger). With route hysteresis (``commit_dist`` > 0) it also remembers each env's last path;
@@ -511,7 +513,7 @@ class PlannerController:
                 ec.preview_q_vel,
                 ec.preview_r_acc,
                 ec.preview_r_jerk,
-            )  # fmt: skip
+            )
             if ec.tracker == "preview"
             else None
         )

@@ -386,7 +386,9 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
                                             ("commit_dist", 13.5), ("commit_max_dev", -0.1),
                                             ("commit_blend", -1.0), ("commit_slack", -0.5), ("predict_s", -0.1),
                                             ("predict_min_speed", -1.0), ("route_tol", -0.1),
-                                            ("route_span", 0.0)])  # fmt: skip
+                                            ("route_span", 0.0), ("preview_tau", 0.0), ("preview_dt", -0.1),
+                                            ("preview_steps", 0), ("preview_q_pos", -1.0), ("preview_r_jerk", -0.1),
+                                            ("preview_drag", -1.0), ("preview_accel", 0.0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

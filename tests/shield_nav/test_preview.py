@@ -196,14 +196,6 @@ def test_preview_tracker_flies_the_open_scenes():
     assert np.all(np.linalg.norm(env.local_pos - start, axis=1) > 3.0)  # 1.5 s at up to 5 m/s
 
 
-@pytest.mark.parametrize(("key", "value"), [("preview_tau", 0.0), ("preview_dt", -0.1), ("preview_steps", 0),
-                                            ("preview_q_pos", -1.0), ("preview_r_jerk", -0.1),
-                                            ("preview_drag", -1.0), ("preview_accel", 0.0)])  # fmt: skip
-def test_bad_preview_config_names_the_key(key, value):
-    with pytest.raises(ConfigError, match=f"expert.{key}"):
-        load_config(BaselineConfig, overrides={f"expert.{key}": value})
-
-
 def test_preview_weights_without_a_minimiser_name_the_key():
     with pytest.raises(ConfigError, match="expert.preview_r_acc"):
         load_config(BaselineConfig, overrides={"expert.preview_r_acc": 0.0, "expert.preview_r_jerk": 0.0})

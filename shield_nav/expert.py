@@ -142,6 +142,10 @@ class ExpertConfig:
     """Lateral acceleration the speed profile allows in turns [m/s^2] (12 before route hysteresis, 2026-11-27)."""
     brake_accel: float = 6.0
     """Deceleration the speed profile plans with [m/s^2]."""
+    accel_budget: float = 0.0
+    """Horizontal acceleration that turning and braking share in the speed profile's backward pass [m/s^2] (a
+    friction circle, :func:`speed_profile`; at most ``brake_accel`` of it brakes). 0: off, the two are separate
+    budgets (``lat_accel`` in bends, ``brake_accel`` everywhere). The tilt cap gives about g tan(max_tilt_deg)."""
     clear_gain: float = 0.0
     """Speed cap per metre of clearance beyond the vehicle radius along the path [1/s] (0: off)."""
     min_speed: float = 1.0
@@ -226,7 +230,8 @@ class ExpertConfig:
                      "lookahead_s", "ff_gain", "momentum", "smooth_slack", "narrow_clearance",
                      "narrow_weight", "drag_ff", "commit_dist", "commit_max_dev", "commit_blend",
                      "commit_slack", "predict_s", "predict_min_speed", "route_tol", "preview_q_pos",
-                     "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag"):  # fmt: skip
+                     "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag",
+                     "accel_budget"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -248,6 +253,8 @@ class ExpertConfig:
         require(self.horizon / self.ds >= 2 * self.curv_window + 2, f"{prefix}horizon",
                 "must hold at least 2 * curv_window + 2 samples of ds")  # fmt: skip
         require(0 < self.max_tilt_deg < 60, f"{prefix}max_tilt_deg", "must be in (0, 60)")
+        require(self.accel_budget == 0 or self.lat_accel <= self.accel_budget, f"{prefix}accel_budget",
+                f"must be 0 (off) or at least lat_accel ({self.lat_accel}), got {self.accel_budget}")  # fmt: skip
         require(self.tracker in TRACKERS, f"{prefix}tracker", f"unknown tracker {self.tracker!r}; expected one of "
                 f"{TRACKERS}")  # fmt: skip
         require(self.preview_steps >= 1, f"{prefix}preview_steps", f"must be >= 1, got {self.preview_steps}")
@@ -398,18 +405,28 @@ def resample_ahead(points: np.ndarray, paths: np.ndarray, m: int, ds: float, ble
 
 
 def speed_profile(kappa: np.ndarray, cap: np.ndarray, lat_accel: float, brake_accel: float, ds: float,
-                  min_speed: float) -> np.ndarray:  # fmt: skip
+                  min_speed: float, accel_budget: float = 0.0) -> np.ndarray:  # fmt: skip
     """Fastest speeds (N, K) along a path that respect the caps and can brake into each of them.
 
     ``v_k = max(min_speed, min(cap_k, sqrt(lat_accel / kappa_k)))``, then backwards
-    ``v_k = min(v_k, sqrt(v_{k+1}^2 + 2 brake_accel ds))``: from any sample, braking at ``brake_accel`` reaches every
-    later cap by the time it gets there.
+    ``v_k = min(v_k, sqrt(v_{k+1}^2 + 2 a_k ds))``: from any sample, braking reaches every later cap by the time it
+    gets there. Without a budget (``accel_budget`` 0) ``a_k = brake_accel``. With one, turning and braking share it
+    (a friction circle): ``a_k = min(brake_accel, sqrt(A^2 - (v_{k+1}^2 kappa)^2))`` with ``kappa`` the larger of the
+    segment's two end curvatures, so a bend flown at ``A`` of lateral acceleration leaves nothing to brake with and
+    the braking happens before it.
     """
     v = np.minimum(cap, np.sqrt(lat_accel / np.maximum(kappa, 1e-9)))
     v = np.maximum(v, min_speed)
     two_a_ds = 2.0 * brake_accel * ds
+    if accel_budget > 0:
+        kseg = np.maximum(kappa[:, :-1], kappa[:, 1:])
     for k in range(v.shape[1] - 2, -1, -1):
-        v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + two_a_ds))
+        if accel_budget > 0:
+            lat = v[:, k + 1] ** 2 * kseg[:, k]
+            a = np.minimum(brake_accel, np.sqrt(np.maximum(accel_budget**2 - lat**2, 0.0)))
+            v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + 2.0 * a * ds))
+        else:
+            v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + two_a_ds))
     return v
 
 
@@ -774,7 +791,7 @@ class PlannerController:
                                                              ec.los_step), axis=1)  # fmt: skip
             cap = np.where(seen, cap, ec.min_speed)
             out["seen"] = seen
-        out["speed"] = speed_profile(kappa, cap, ec.lat_accel, ec.brake_accel, ec.ds, ec.min_speed)
+        out["speed"] = speed_profile(kappa, cap, ec.lat_accel, ec.brake_accel, ec.ds, ec.min_speed, ec.accel_budget)
         return out
 
     def commands(self, env: Any) -> np.ndarray:

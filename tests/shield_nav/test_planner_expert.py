@@ -38,6 +38,30 @@ def test_speed_profile_curvature_cap_and_floor():
     np.testing.assert_allclose(v[1:3], [2.0, 0.7])
 
 
+def test_speed_profile_with_a_budget_is_unchanged_on_a_straight_path():
+    # No curvature: the budget (10) exceeds brake_accel (4), so the braking is brake_accel's, as by hand above.
+    cap = np.full((1, 10), 9.0)
+    cap[0, 6] = 2.0
+    v = speed_profile(np.zeros((1, 10)), cap, lat_accel=8.0, brake_accel=4.0, ds=0.5, min_speed=0.5,
+                      accel_budget=10.0)[0]  # fmt: skip
+    expect = [math.sqrt(x) for x in (28.0, 24.0, 20.0, 16.0, 12.0, 8.0)] + [2.0, 9.0, 9.0, 9.0]
+    np.testing.assert_allclose(v, expect, rtol=1e-12)
+
+
+def test_speed_profile_friction_circle_by_hand():
+    # kappa 0.25, 0.25, 1 1/m, lateral 4 m/s^2 = the budget: curvature caps 4, 4, 2 m/s. ds 0.1 m, brake_accel 10.
+    kappa = np.array([[0.25, 0.25, 1.0]])
+    cap = np.full((1, 3), 9.0)
+    # Separate budgets: v1 = sqrt(2^2 + 2 * 10 * 0.1) = sqrt(6), v0 = sqrt(6 + 2) = sqrt(8).
+    v = speed_profile(kappa, cap.copy(), lat_accel=4.0, brake_accel=10.0, ds=0.1, min_speed=0.5)[0]
+    np.testing.assert_allclose(v, [math.sqrt(8.0), math.sqrt(6.0), 2.0], rtol=1e-12)
+    # Shared budget 4: segment 1-2 has kappa max(0.25, 1) = 1 and 2^2 * 1 = 4 m/s^2 of turning, nothing left to
+    # brake with, so v1 = 2; segment 0-1 has kappa 0.25, turning 2^2 * 0.25 = 1, braking sqrt(16 - 1) = sqrt(15):
+    # v0 = sqrt(4 + 2 * sqrt(15) * 0.1).
+    v = speed_profile(kappa, cap.copy(), lat_accel=4.0, brake_accel=10.0, ds=0.1, min_speed=0.5, accel_budget=4.0)[0]
+    np.testing.assert_allclose(v, [math.sqrt(4.0 + 0.2 * math.sqrt(15.0)), 2.0, 2.0], rtol=1e-12)
+
+
 @pytest.mark.parametrize("radius", [2.0, 5.0])
 def test_windowed_curvature_of_a_circle_is_one_over_its_radius(radius):
     ds = 0.1
@@ -388,7 +412,8 @@ def test_planner_is_a_baseline_row_and_a_dagger_expert():
                                             ("predict_min_speed", -1.0), ("route_tol", -0.1),
                                             ("route_span", 0.0), ("preview_tau", 0.0), ("preview_dt", -0.1),
                                             ("preview_steps", 0), ("preview_q_pos", -1.0), ("preview_r_jerk", -0.1),
-                                            ("preview_drag", -1.0), ("preview_accel", 0.0)])  # fmt: skip
+                                            ("preview_drag", -1.0), ("preview_accel", 0.0),
+                                            ("accel_budget", -1.0), ("accel_budget", 5.0)])  # fmt: skip
 def test_bad_expert_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"expert.{key}"):
         load_config(BaselineConfig, overrides={f"expert.{key}": value})

@@ -4,7 +4,7 @@ See ``docs/depth.md`` for the camera model, frames, the sensor model and benchma
 """
 
 from envs.camera.config import CameraConfig, DepthNoiseConfig
-from envs.camera.model import R_bc, camera_poses, intrinsics, normalize_depth, ray_dirs_c, ray_grid
+from envs.camera.model import R_bc, camera_poses, intrinsics, min_pool, normalize_depth, ray_dirs_c, ray_grid
 from envs.camera.noise import DepthNoise
 from envs.camera.pointcloud import depth_to_points, voxel_downsample
 from envs.camera.renderer import DepthCamera
@@ -20,6 +20,7 @@ __all__ = [
     "depth_to_points",
     "depth_to_rgb",
     "intrinsics",
+    "min_pool",
     "normalize_depth",
     "ray_dirs_c",
     "ray_grid",

@@ -11,7 +11,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from envs.camera import DepthCamera, DepthNoise, normalize_depth
+from envs.camera import DepthCamera, DepthNoise, min_pool, normalize_depth
 from envs.config import load_config
 from envs.fields import scene_field_stack
 from envs.fields.anchors import GoalAnchorFields
@@ -406,8 +406,7 @@ class NavigationEnv(VectorEnv):
             r_obs = r_wb
         state = self._state(pos, r_obs, v_b)
         pr, pc = cfg.critic_depth_pool
-        H, W = cfg.camera.height, cfg.camera.width
-        pooled = self.clean_depth_buf.reshape(self.num_envs, pr, H // pr, pc, W // pc).min(axis=(2, 4))
+        pooled = min_pool(self.clean_depth_buf, pr, pc)
         pooled = normalize_depth(pooled.reshape(self.num_envs, -1), cfg.camera)
         self._critic = np.concatenate(
             (

@@ -16,6 +16,7 @@ from envs.camera import (
     camera_poses,
     depth_to_points,
     intrinsics,
+    min_pool,
     normalize_depth,
     ray_dirs_c,
     save_depth_png,
@@ -310,3 +311,21 @@ def test_png_helpers_write_images(tmp_path):
     img = matplotlib.image.imread(tmp_path / "strip.png")
     assert img.shape[:2] == (60, 202)
     assert np.all(img[0, 0, :3] == 0.0)  # the invalid pixel (depth 0) is black
+
+
+def test_min_pool_equals_the_nearest_depth_of_every_block():
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.1, 10.0, size=(3, 1, 12, 20)).astype(np.float32)
+    depth[1, 0, 5, 7] = np.nan  # block (row 5 // 4 = 1, col 7 // 5 = 1) of env 1
+    got = min_pool(depth, 3, 4)
+    assert got.shape == (3, 3, 4)
+    for n in range(3):
+        for i in range(3):
+            for j in range(4):
+                block = depth[n, 0, 4 * i : 4 * i + 4, 5 * j : 5 * j + 5]
+                if n == 1 and (i, j) == (1, 1):
+                    assert np.isnan(got[n, i, j])
+                else:
+                    assert got[n, i, j] == block.min()
+    with pytest.raises(ValueError, match="3 x 7 pool does not divide 12 x 20"):
+        min_pool(depth, 3, 7)

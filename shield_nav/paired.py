@@ -40,7 +40,7 @@ import os
 from shield_nav.evaluation import wilson_interval
 from shield_nav.provenance import format_differences, version_differences
 
-__all__ = ["compare", "compare_pooled", "mcnemar_exact", "paired_outcomes"]
+__all__ = ["compare", "compare_pooled", "mcnemar_exact", "paired_outcomes", "row_trials"]
 
 
 def mcnemar_exact(a_only: int, b_only: int) -> float:
@@ -56,7 +56,7 @@ def mcnemar_exact(a_only: int, b_only: int) -> float:
     return min(1.0, float(binomtest(k, n, 0.5).pvalue))
 
 
-def _trials(spec: str, speeds: list[float] | None) -> dict[tuple, dict]:
+def row_trials(spec: str, speeds: list[float] | None = None) -> dict[tuple, dict]:
     """``OUT_DIR:ROW`` -> {(family, scene, speed, trial): trial record}."""
     out_dir, sep, row = spec.rpartition(":")
     if not sep or not out_dir or not row:
@@ -110,7 +110,7 @@ def paired_outcomes(
     Raises:
         ValueError: No common trial, or a common trial whose seed, start or goal differ between the two.
     """
-    ta, tb = _trials(a, speeds), _trials(b, speeds)
+    ta, tb = row_trials(a, speeds), row_trials(b, speeds)
     common = sorted(set(ta) & set(tb))
     if not common:
         raise ValueError(f"{a} and {b} have no trial in common (different scenes or speeds?)")

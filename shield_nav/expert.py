@@ -421,12 +421,10 @@ def speed_profile(kappa: np.ndarray, cap: np.ndarray, lat_accel: float, brake_ac
     if accel_budget > 0:
         kseg = np.maximum(kappa[:, :-1], kappa[:, 1:])
     for k in range(v.shape[1] - 2, -1, -1):
-        if accel_budget > 0:
+        if accel_budget > 0:  # braking left by the turn at the segment's slower end
             lat = v[:, k + 1] ** 2 * kseg[:, k]
-            a = np.minimum(brake_accel, np.sqrt(np.maximum(accel_budget**2 - lat**2, 0.0)))
-            v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + 2.0 * a * ds))
-        else:
-            v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + two_a_ds))
+            two_a_ds = 2.0 * np.minimum(brake_accel, np.sqrt(np.maximum(accel_budget**2 - lat**2, 0.0))) * ds
+        v[:, k] = np.minimum(v[:, k], np.sqrt(v[:, k + 1] ** 2 + two_a_ds))
     return v
 
 

@@ -48,6 +48,7 @@ import numpy as np
 
 from envs.config import require
 from envs.fields.lookup import trilinear_point
+from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
 from shield_nav.preview import PreviewGains, timed_reference
 from shield_nav.tracking import accel_to_command
 
@@ -197,6 +198,33 @@ class ExpertConfig:
     """``preview``: acceleration with which the reference speeds up along the path from the current speed [m/s^2]."""
     preview_drag: float = 1.0
     """``preview``: share of the nominal drag (:func:`drag_accel`) the model carries as a known disturbance."""
+    mppi_steps: int = 20
+    """``mppi``: intervals in the sampling horizon (:mod:`shield_nav.mppi`; the intervals are ``preview_dt`` long and
+    the model is the preview tracker's, ``preview_tau``, ``preview_drag``)."""
+    mppi_samples: int = 64
+    """``mppi``: sequences sampled per env and control step (the last plan and the nominal command among them)."""
+    mppi_sigma: float = 1.5
+    """``mppi``: standard deviation of the horizontal input noise [m/s^2]."""
+    mppi_sigma_z: float = 1.0
+    """``mppi``: standard deviation of the vertical input noise [m/s^2]."""
+    mppi_hold: int = 4
+    """``mppi``: intervals over which each noise draw is held (smooth samples)."""
+    mppi_temperature: float = 0.05
+    """``mppi``: lambda of the path-integral weights as a share of each env's cost spread."""
+    mppi_q_pos: float = 1.0
+    """``mppi``: weight of the position error to the timed reference [1/m^2]."""
+    mppi_q_vel: float = 0.3
+    """``mppi``: weight of the velocity error [s^2/m^2]."""
+    mppi_r_acc: float = 0.001
+    """``mppi``: weight of the inputs [s^4/m^2]."""
+    mppi_clearance: float = 0.5
+    """``mppi``: ESDF below which a predicted position pays ``mppi_w_clear`` per square metre [m]."""
+    mppi_w_clear: float = 400.0
+    """``mppi``: weight of the clearance shortfall [1/m^2]."""
+    mppi_w_crash: float = 1000.0
+    """``mppi``: cost of a predicted position closer than the vehicle's collision radius."""
+    mppi_vert_accel: float = 5.0
+    """``mppi``: largest vertical input the samples may use [m/s^2]."""
     max_tilt_deg: float = 48.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50)."""
     visibility: str = "map"
@@ -224,6 +252,9 @@ class ExpertConfig:
             "preview_tau",
             "preview_dt",
             "preview_accel",
+            "mppi_sigma",
+            "mppi_temperature",
+            "mppi_vert_accel",
         ):
             require(getattr(self, name) > 0, f"{prefix}{name}", f"must be > 0, got {getattr(self, name)}")
         for name in ("field_radius", "clearance_gain", "goal_switch", "clear_gain", "min_speed", "lag_s",
@@ -231,7 +262,8 @@ class ExpertConfig:
                      "narrow_weight", "drag_ff", "commit_dist", "commit_max_dev", "commit_blend",
                      "commit_slack", "predict_s", "predict_min_speed", "route_tol", "preview_q_pos",
                      "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag",
-                     "accel_budget"):  # fmt: skip
+                     "accel_budget", "mppi_sigma_z", "mppi_q_pos", "mppi_q_vel", "mppi_r_acc",
+                     "mppi_clearance", "mppi_w_clear", "mppi_w_crash"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -262,6 +294,9 @@ class ExpertConfig:
                 "preview_q_pos + preview_q_vel must be > 0 (nothing would be tracked)")  # fmt: skip
         require(self.preview_r_acc + self.preview_r_jerk > 0, f"{prefix}preview_r_acc",
                 "preview_r_acc + preview_r_jerk must be > 0 (the problem would have no unique minimiser)")  # fmt: skip
+        require(self.mppi_steps >= 1, f"{prefix}mppi_steps", f"must be >= 1, got {self.mppi_steps}")
+        require(self.mppi_samples >= 3, f"{prefix}mppi_samples", f"must be >= 3, got {self.mppi_samples}")
+        require(self.mppi_hold >= 1, f"{prefix}mppi_hold", f"must be >= 1, got {self.mppi_hold}")
         require(self.tangent_span >= 1, f"{prefix}tangent_span", f"must be >= 1, got {self.tangent_span}")
         require(self.k_x >= 0, f"{prefix}k_x", f"must be >= 0, got {self.k_x}")
         require(self.visibility in VISIBILITIES, f"{prefix}visibility", f"unknown visibility {self.visibility!r}; "
@@ -334,7 +369,7 @@ def _trace_kernel(
             x, y, z = x + ds * ux, y + ds * uy, z + ds * uz
 
 
-TRACKERS = ("chord", "tangent", "preview")
+TRACKERS = ("chord", "tangent", "preview", "mppi")
 """Reference directions of the tracker (:attr:`ExpertConfig.tracker`)."""
 
 VISIBILITIES = ("map", "camera")
@@ -529,13 +564,18 @@ class PlannerController:
                 ec.preview_r_acc,
                 ec.preview_r_jerk,
             )
-            if ec.tracker == "preview"
+            if ec.tracker in ("preview", "mppi")
             else None
+        )
+        self.mppi = (
+            MppiTracker(ec.preview_tau, ec.preview_dt, ec.mppi_steps, ec.mppi_samples) if ec.tracker == "mppi" else None
         )
 
     def reset(self, env: Any) -> None:
-        """Forget the remembered paths (``commit_dist``); the planning fields are built on first use and kept."""
+        """Forget the remembered paths (``commit_dist``) and plans (``mppi``); the fields are built once and kept."""
         self._memory = None
+        if self.mppi is not None:
+            self.mppi.reset()
 
     # ------------------------------------------------------------------------------------------------ fields
     def _fields(self, env: Any) -> tuple[Any, Any, Any]:
@@ -807,7 +847,7 @@ class PlannerController:
         k_la = np.clip(np.round(np.maximum(ec.lookahead_min, speed * ec.lookahead_s) / ec.ds).astype(int),
                        k_ref + 1, kp1 - 1)  # fmt: skip
         v_r = v_prof[rows, k_ref]
-        if ec.tracker in ("tangent", "preview"):  # preview: the tangent command where the narrow field is flown
+        if ec.tracker in ("tangent", "preview", "mppi"):  # the tangent command where the narrow field is flown
             k_b = np.minimum(k_ref + ec.tangent_span, kp1 - 1)
             chord = _unit(path[rows, k_b] - path[rows, k_ref])
             v_ref = v_r[:, None] * chord + ec.k_x * (path[rows, k_ref] - (pos + vel * ec.lag_s))
@@ -826,27 +866,58 @@ class PlannerController:
             a_p, v_p = self._preview(env, plan)
             wide = ~self.fallback[:, None]
             a, v_ref = np.where(wide, a_p, a), np.where(wide, v_p, v_ref)
+        elif ec.tracker == "mppi":  # sampled round the preview command, which it starts from
+            a_p, v_p = self._preview(env, plan)
+            wide = ~self.fallback[:, None]
+            a, v_ref = np.where(wide, self._mppi(env, plan, a_p), a), np.where(wide, v_p, v_ref)
         psi = np.arctan2(chord[:, 1], chord[:, 0])
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a, "k_ref": k_ref}
         return accel_to_command(a, psi, track, env.cfg.vehicle.gravity)
 
-    def _preview(self, env: Any, plan: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""
+    def _model_state(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The inner-loop model's state (N, 3 axes, [p, v, a]) and the thrust vector's acceleration now (N, 3)."""
+        veh = env.vehicles
+        a_thr = veh.R_wb[:, :, 2] * (veh.motor_thrust_buf.sum(axis=1) / veh.nominal_mass)[:, None]
+        a_thr[:, 2] -= env.cfg.vehicle.gravity
+        return np.stack((env.local_pos, veh.vel_w, a_thr), axis=2), a_thr
+
+    def _timed(self, plan: dict[str, np.ndarray], vel: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
+        """The timed reference (N, steps, 3) positions and velocities, from the vehicle's speed along the path."""
         ec = self.ec
         path, v_prof = plan["path"], plan["speed"]
-        pos, vel = env.local_pos, env.vehicles.vel_w
-        veh = env.vehicles
-        r_wb = veh.R_wb
-        # The model's state: position, velocity and the thrust vector's acceleration now (gravity removed).
-        a_thr = r_wb[:, :, 2] * (veh.motor_thrust_buf.sum(axis=1) / veh.nominal_mass)[:, None]
-        a_thr[:, 2] -= env.cfg.vehicle.gravity
         # The reference starts from the vehicle's speed along the path (not |v|: after a turn of the route the
         # vehicle does not yet move along it).
         ahead = _unit(path[:, min(ec.tangent_span, path.shape[1] - 1)] - path[:, 0])
         along = np.maximum(np.einsum("ni,ni->n", vel, ahead), 0.0)
-        ref_p, ref_v = timed_reference(path, v_prof, along, ec.preview_accel, ec.preview_dt, ec.preview_steps)
-        ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(pos), 3, -1)  # (N, 3, 2 steps)
-        x0 = np.stack((pos, vel, a_thr), axis=2)  # (N, 3 axes, [p, v, a])
-        d = ec.preview_drag * drag_accel(vel, r_wb, env.cfg.vehicle.airframe)
+        return timed_reference(path, v_prof, along, ec.preview_accel, ec.preview_dt, steps)
+
+    def _mppi(self, env: Any, plan: dict[str, np.ndarray], nominal: np.ndarray) -> np.ndarray:
+        """Accelerations (N, 3) of the ``mppi`` tracker (:mod:`shield_nav.mppi`) round the nominal command."""
+        ec = self.ec
+        m = self.mppi
+        vel = env.vehicles.vel_w
+        x0, _ = self._model_state(env)
+        ref_p, ref_v = self._timed(plan, vel, ec.mppi_steps)
+        drag = ec.preview_drag * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
+        g = env.cfg.vehicle.gravity
+        base = m.warm_start(nominal, env.episode_length_buf, env.cfg.vehicle.command_dt)
+        u = clamp_inputs(m.candidates(base, nominal, ec.mppi_sigma, ec.mppi_sigma_z, ec.mppi_hold), g,
+                         ec.max_tilt_deg, ec.mppi_vert_accel)  # fmt: skip
+        ef = env.field_stack.kernel_fields(env.scene_id_buf)
+        costs = np.empty(u.shape[:2])
+        rollout_costs(np.ascontiguousarray(x0), u, np.ascontiguousarray(drag), ref_p, ref_v, m.a_mat, m.b_vec,
+                      m.e_vec, ec.mppi_q_pos, ec.mppi_q_vel, ec.mppi_r_acc, ec.mppi_w_clear, ec.mppi_clearance,
+                      ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7], costs)  # fmt: skip
+        m.plan = path_integral_mean(u, costs, ec.mppi_temperature)
+        return m.plan[:, 0]
+
+    def _preview(self, env: Any, plan: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""
+        ec = self.ec
+        vel = env.vehicles.vel_w
+        x0, a_thr = self._model_state(env)
+        ref_p, ref_v = self._timed(plan, vel, ec.preview_steps)
+        ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(vel), 3, -1)  # (N, 3, 2 steps)
+        d = ec.preview_drag * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
         return self.gains.first_input(ref, x0, d, a_thr), ref_v[:, 0]

@@ -1,0 +1,131 @@
+"""The sampling tracker (shield_nav.mppi): rollouts, clamps, weights and warm starts against hand values."""
+
+import math
+
+import numpy as np
+import pytest
+
+from envs.config import ConfigError
+from envs.fields import scene_field_stack
+from envs.scenes import Box, Scene
+from shield_nav.expert import ExpertConfig
+from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
+from shield_nav.preview import discretise
+
+# One box in a small room: its +x face is the plane x = 4.5 for |y| < 1 (floor at z = 0, no ceiling).
+SCENE = Scene(bounds_lo=(0.0, -3.0, 0.0), bounds_hi=(9.0, 3.0, 3.0),
+              primitives=(Box((5.0, 0.0, 1.5), (0.5, 1.0, 1.5)),))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def esdf_fields():
+    stack = scene_field_stack([SCENE], 0.1, 0.2, lazy=False)
+    return stack, stack.kernel_fields(np.zeros(2, dtype=np.int64))[:7]
+
+
+def _costs(fields, x0, u, ref_p, ref_v, **w):
+    tau, dt = 0.2, 0.04
+    a_m, b, e = discretise(tau, dt)
+    n, s = u.shape[:2]
+    out = np.empty((n, s))
+    kw = {"q_pos": 1.0, "q_vel": 0.3, "r_acc": 0.001, "w_clear": 400.0, "clearance": 0.5, "w_crash": 1000.0}
+    kw.update(w)
+    rollout_costs(x0, u, np.zeros((n, 3)), ref_p, ref_v, a_m, b, e, kw["q_pos"], kw["q_vel"], kw["r_acc"],
+                  kw["w_clear"], kw["clearance"], kw["w_crash"], 0.2, fields, out)  # fmt: skip
+    return out
+
+
+def test_a_rollout_in_free_space_costs_its_closed_form_tracking_error(esdf_fields):
+    """From rest, input u held: a = u (1 - e^{-t/tau}), v = u (t - tau (1 - e^{-t/tau})), p integrated by hand."""
+    _, fields = esdf_fields
+    tau, dt, steps, u = 0.2, 0.04, 10, 3.0
+    p0 = np.array([1.5, -2.0, 1.5])  # 2.1 m from the box, 1.5 m above the floor: no clearance cost
+    x0 = np.zeros((2, 3, 3))
+    x0[:, :, 0] = p0
+    seq = np.zeros((2, 1, steps, 3))
+    seq[0, 0, :, 0] = u  # env 0 accelerates along +x; env 1 hovers
+    ref_p = np.repeat(p0[None, None], 2, axis=0).repeat(steps, axis=1)  # the reference stays at the start
+    ref_v = np.zeros((2, steps, 3))
+    out = _costs(fields, x0, seq, ref_p, ref_v)
+    t = dt * np.arange(1, steps + 1)
+    q = np.exp(-t / tau)
+    v = u * (t - tau * (1 - q))
+    p = u * (t**2 / 2 - tau * t + tau**2 * (1 - q))
+    want = np.sum(1.0 * p**2 + 0.3 * v**2 + 0.001 * u**2)
+    assert out[0, 0] == pytest.approx(want, rel=1e-9)
+    assert out[1, 0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_clearance_and_crash_costs_read_the_esdf(esdf_fields):
+    """Hovering 0.3 m and 0.1 m in front of the box's face: (0.5 - d)^2 x 400 per step, + 1000 within 0.2 m."""
+    stack, fields = esdf_fields
+    steps = 3
+    x0 = np.zeros((2, 3, 3))
+    x0[0, :, 0] = (4.2, 0.0, 1.5)
+    x0[1, :, 0] = (4.4, 0.0, 1.5)
+    d = stack.esdf(np.zeros(2, dtype=np.int64), x0[:, :, 0])
+    np.testing.assert_allclose(d, [0.3, 0.1], atol=0.02)  # the field against the face's plane by hand
+    ref_p = np.repeat(x0[:, None, :, 0], steps, axis=1)
+    out = _costs(fields, x0, np.zeros((2, 1, steps, 3)), ref_p, np.zeros((2, steps, 3)))
+    np.testing.assert_allclose(out[:, 0], steps * (400.0 * (0.5 - d) ** 2 + np.array([0.0, 1000.0])), rtol=1e-9)
+
+
+def test_clamp_inputs_to_the_vertical_limit_then_the_tilt_cone():
+    u = np.array([[20.0, 0.0, 0.0], [3.0, 4.0, 9.0], [1.0, 0.0, -2.0]])
+    out = clamp_inputs(u, 9.81, 45.0, 5.0)
+    np.testing.assert_allclose(out[0], [9.81, 0.0, 0.0])  # tan 45 deg = 1: |u_xy| <= g
+    np.testing.assert_allclose(out[1], [3.0, 4.0, 5.0])  # |u_xy| = 5 <= 14.81 after u_z clipped to 5
+    np.testing.assert_allclose(out[2], [1.0, 0.0, -2.0])
+    assert math.hypot(*clamp_inputs(np.array([[30.0, 30.0, -5.0]]), 9.81, 45.0, 5.0)[0, :2]) == pytest.approx(4.81)
+
+
+def test_path_integral_weights_by_hand():
+    """Costs 0, 1, 2 (median 1, least 0), temperature 1: weights e^0, e^-1, e^-2 over constant sequences 0, 1, 2."""
+    u = np.arange(3, dtype=float)[None, :, None, None] * np.ones((1, 3, 2, 3))
+    w = np.exp(-np.arange(3.0))
+    got = path_integral_mean(u, np.array([[0.0, 1.0, 2.0]]), 1.0)
+    np.testing.assert_allclose(got, np.full((1, 2, 3), (w @ np.arange(3.0)) / w.sum()))
+    # Scale-free: ten times the costs give the same weights; a tiny temperature picks the best sample.
+    np.testing.assert_allclose(path_integral_mean(u, np.array([[0.0, 10.0, 20.0]]), 1.0), got)
+    np.testing.assert_allclose(path_integral_mean(u, np.array([[5.0, 1.0, 9.0]]), 1e-3), np.ones((1, 2, 3)))
+    with pytest.raises(FloatingPointError, match=r"\(env, sample\) \[0, 1\]"):
+        path_integral_mean(u, np.array([[0.0, np.nan, 1.0]]), 1.0)
+    with pytest.raises(ValueError, match="temperature"):
+        path_integral_mean(u, np.zeros((1, 3)), 0.0)
+
+
+def test_warm_start_advances_the_plan_and_restarts_fresh_episodes():
+    m = MppiTracker(tau=0.2, dt=0.04, steps=4, samples=8, seed=0)
+    nominal = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    first = m.warm_start(nominal, np.array([5, 7]), 0.01)
+    np.testing.assert_allclose(first, np.repeat(nominal[:, None], 4, axis=1))  # no plan yet: the nominal held
+    m.plan = np.arange(4, dtype=float)[None, :, None] * np.ones((2, 4, 3))  # inputs 0, 1, 2, 3
+    out = m.warm_start(nominal, np.array([6, 0]), 0.01)  # env 1's episode restarted
+    np.testing.assert_allclose(out[0, :, 0], [0.25, 1.25, 2.25, 3.0])  # a quarter interval later, the end held
+    np.testing.assert_allclose(out[1], np.repeat(nominal[1:2], 4, axis=0))
+    m.reset()
+    np.testing.assert_allclose(m.warm_start(nominal, np.array([9, 9]), 0.01), first)
+
+
+def test_candidates_hold_the_base_the_nominal_and_piecewise_constant_noise():
+    m = MppiTracker(tau=0.2, dt=0.04, steps=6, samples=5, seed=1)
+    base = np.zeros((2, 6, 3))
+    nominal = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    c = m.candidates(base, nominal, sigma=2.0, sigma_z=0.0, hold=4)
+    assert c.shape == (2, 5, 6, 3)
+    np.testing.assert_array_equal(c[:, 0], base)
+    np.testing.assert_array_equal(c[:, 1], np.repeat(nominal[:, None], 6, axis=1))
+    noise = c[:, 2:]
+    np.testing.assert_array_equal(noise[:, :, 1:4], noise[:, :, :1].repeat(3, axis=2))  # held over 4 intervals
+    np.testing.assert_array_equal(noise[:, :, 5], noise[:, :, 4])
+    assert np.all(noise[..., 2] == 0.0) and np.all(noise[..., :2] != 0.0)
+    again = MppiTracker(tau=0.2, dt=0.04, steps=6, samples=5, seed=1).candidates(base, nominal, 2.0, 0.0, 4)
+    np.testing.assert_array_equal(again, c)  # seeded: a flight repeats
+
+
+def test_mppi_keys_are_checked_by_name():
+    ExpertConfig(tracker="mppi").validate()
+    for key, bad in (("mppi_samples", 2), ("mppi_steps", 0), ("mppi_hold", 0), ("mppi_temperature", 0.0),
+                     ("mppi_w_clear", -1.0), ("mppi_sigma", 0.0)):  # fmt: skip
+        with pytest.raises(ConfigError, match=key):
+            ExpertConfig(tracker="mppi", **{key: bad}).validate(prefix="baselines.expert.")

@@ -22,7 +22,7 @@ included) and ``radius`` the vehicle's collision radius, ``+ r_acc |u_k|^2``.
 input repeated), sample 1 holds the nominal command (the preview tracker's) over the horizon, the others add Gaussian
 noise of standard deviation ``sigma`` (``sigma_z`` vertically) held over ``hold`` intervals to the shifted plan.
 The new plan is the weighted mean of all of them; its first input is the command. The noise comes from a generator
-seeded once, so a flight repeats.
+seeded again at every reset, so a flight repeats.
 """
 
 from __future__ import annotations
@@ -129,12 +129,14 @@ class MppiTracker:
             raise ValueError(f"mppi needs steps >= 1 and samples >= 3, got steps={steps}, samples={samples}")
         self.a_mat, self.b_vec, self.e_vec = discretise(tau, dt)
         self.dt, self.steps, self.samples = dt, steps, samples
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.plan: np.ndarray | None = None
         self._episode: np.ndarray | None = None
 
     def reset(self) -> None:
-        """Forget every plan (a fresh evaluation batch)."""
+        """Forget every plan and restart the noise generator (a fresh evaluation batch flies as it would first)."""
+        self.rng = np.random.default_rng(self.seed)
         self.plan = None
         self._episode = None
 

@@ -121,6 +121,9 @@ def test_candidates_hold_the_base_the_nominal_and_piecewise_constant_noise():
     assert np.all(noise[..., 2] == 0.0) and np.all(noise[..., :2] != 0.0)
     again = MppiTracker(tau=0.2, dt=0.04, steps=6, samples=5, seed=1).candidates(base, nominal, 2.0, 0.0, 4)
     np.testing.assert_array_equal(again, c)  # seeded: a flight repeats
+    assert not np.array_equal(m.candidates(base, nominal, 2.0, 0.0, 4), c)  # the generator moves on
+    m.reset()
+    np.testing.assert_array_equal(m.candidates(base, nominal, 2.0, 0.0, 4), c)  # and restarts at a reset
 
 
 def test_mppi_keys_are_checked_by_name():

@@ -28,6 +28,9 @@ rest numpy over envs):
    (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward"). ``tracker: preview``
    (off by default) instead chooses ``a`` by receding-horizon LQ tracking of the path timed by its profile, on the
    inner loop's first-order model (:mod:`shield_nav.preview`; envs on the narrow field keep the tangent command).
+   ``tracker: mppi`` (off by default) samples input sequences round that preview command and scores their
+   predictions on the same model against the timed path *and the ESDF*, so the command keeps clear of obstacles the
+   plan passes close to (:mod:`shield_nav.mppi`).
 
 With ``commit_dist`` 0 the expert is stateless: its command depends only on the current state, so it labels any
 state a student reaches (DAgger). With route hysteresis (``commit_dist`` > 0) it also remembers each env's last path;
@@ -164,7 +167,9 @@ class ExpertConfig:
     position predicted ``lag_s`` ahead); or ``preview``: receding-horizon LQ tracking of the timed path on the
     attitude loop's first-order model (:mod:`shield_nav.preview`, keys ``preview_*``), except in envs that descend
     the narrow field (box mazes, where the path can shrink and turn from step to step at a crawl), which get the
-    ``tangent`` command."""
+    ``tangent`` command; or ``mppi``: sampled input sequences round the ``preview`` command, scored on the same
+    model against the timed path and the ESDF (:mod:`shield_nav.mppi`, keys ``mppi_*``), the narrow field again on
+    ``tangent``."""
     tangent_span: int = 2
     """Samples over which the ``tangent`` tracker measures the path direction."""
     k_x: float = 2.0

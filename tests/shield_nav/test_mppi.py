@@ -7,8 +7,10 @@ import pytest
 
 from envs.config import ConfigError
 from envs.fields import scene_field_stack
+from envs.navigation import NavigationEnv
 from envs.scenes import Box, Scene
-from shield_nav.expert import ExpertConfig
+from shield_nav.baselines import BaselineConfig
+from shield_nav.expert import ExpertConfig, PlannerController
 from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
 from shield_nav.preview import discretise
 
@@ -132,3 +134,60 @@ def test_mppi_keys_are_checked_by_name():
                      ("mppi_w_clear", -1.0), ("mppi_sigma", 0.0)):  # fmt: skip
         with pytest.raises(ConfigError, match=key):
             ExpertConfig(tracker="mppi", **{key: bad}).validate(prefix="baselines.expert.")
+
+
+def _nav_env(n: int, speed: float, **over) -> NavigationEnv:
+    kw = {"scenes.indices": [0, 1], "episode.initial_speed_fraction": [0.3, 0.5], "episode.target_speeds": [speed],
+          "episode.speed_range": [], **over}  # fmt: skip
+    env = NavigationEnv(num_envs=n, **kw)
+    env.reset(seed=3)
+    return env
+
+
+def test_with_vanishing_noise_the_first_command_is_the_preview_trackers():
+    """No plan yet and noise ~0: every sample is the preview command held (clamped to the flyable set), so their
+    weighted mean is that command. Checked at cruise, after 1.2 s flown by the preview expert; without route
+    hysteresis, so both plan the same path from the same state."""
+    env = _nav_env(4, 5.0)
+    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="preview", commit_dist=0.0)))
+    for _ in range(120):
+        env.step(np.zeros((4, 4)), commands=prev.commands(env))
+    cmd_p = prev.commands(env)
+    quiet = ExpertConfig(tracker="mppi", commit_dist=0.0, mppi_sigma=1e-9, mppi_sigma_z=0.0)
+    mppi = PlannerController(BaselineConfig(expert=quiet))
+    cmd_m = mppi.commands(env)
+    assert not mppi.fallback.any()
+    ec = ExpertConfig()
+    want = clamp_inputs(prev.last["a"], env.cfg.vehicle.gravity, ec.max_tilt_deg, ec.mppi_vert_accel)
+    np.testing.assert_allclose(mppi.last["a"], want, atol=1e-6)
+    inside = np.all(np.abs(want - prev.last["a"]) < 1e-12, axis=1)  # where the clamp did not act: the same command
+    assert inside.any()
+    np.testing.assert_allclose(cmd_m[inside], cmd_p[inside], atol=1e-6)
+    assert mppi.mppi.plan.shape == (4, ec.mppi_steps, 3)
+
+
+def test_mppi_tracker_hands_the_narrow_field_to_the_tangent_tracker():
+    """In a box maze (benchmark scene 14) the expert descends the narrow field, and there mppi commands as tangent."""
+    over = {"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False, "curriculum.enabled": False}
+    env = NavigationEnv(num_envs=4, **over)
+    env.reset(seed=2)
+    env.vehicles.vel_w[:] = np.array([1.0, -0.5, 0.0])
+    mppi = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="mppi")))
+    cmd_m = mppi.commands(env)
+    tang = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent")))
+    cmd_t = tang.commands(env)
+    assert mppi.fallback.all()
+    np.testing.assert_allclose(cmd_m, cmd_t, atol=1e-12)
+
+
+def test_mppi_tracker_flies_the_open_scenes():
+    """Real physics: the sampling expert leaves the start and flies 1.5 s at 7 m/s without touching anything."""
+    env = _nav_env(4, 7.0)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="mppi")))
+    start = env.local_pos.copy()
+    for _ in range(150):
+        cmd = ctrl.commands(env)
+        assert np.isfinite(cmd).all()
+        env.step(np.zeros((4, 4)), commands=cmd)
+    assert not env.vehicles.collided_buf.any()
+    assert np.all(np.linalg.norm(env.local_pos - start, axis=1) > 4.0)

@@ -25,12 +25,12 @@ rest numpy over envs):
    ``a = a_ff + k_v (v_ref - v)``, turned into thrust and attitude with the tilt and thrust limits of
    :class:`shield_nav.tracking.TrackingConfig` overridden by ``max_tilt_deg``. Yaw follows the chord, so the
    camera looks along the path. ``drag_ff`` > 0 adds that share of the vehicle model's drag at the current velocity
-   (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward"). ``tracker: preview``
-   (off by default) instead chooses ``a`` by receding-horizon LQ tracking of the path timed by its profile, on the
-   inner loop's first-order model (:mod:`shield_nav.preview`; envs on the narrow field keep the tangent command).
-   ``tracker: mppi`` (off by default) samples input sequences round that preview command and scores their
-   predictions on the same model against the timed path *and the ESDF*, so the command keeps clear of obstacles the
-   plan passes close to (:mod:`shield_nav.mppi`).
+   (:func:`drag_accel`) to ``a``; off by default (docs/expert.md, "The drag feedforward"). That is the ``chord`` /
+   ``tangent`` family. ``tracker: preview`` instead chooses ``a`` by receding-horizon LQ tracking of the path timed
+   by its profile, on the inner loop's first-order model (:mod:`shield_nav.preview`). The default since
+   2026-11-29, ``tracker: mppi``, samples input sequences round that preview command and scores their predictions
+   on the same model against the timed path *and the ESDF*, so the command keeps clear of obstacles the plan passes
+   close to (:mod:`shield_nav.mppi`). Envs that descend the narrow field keep the ``tangent`` command under both.
 
 With ``commit_dist`` 0 the expert is stateless: its command depends only on the current state, so it labels any
 state a student reaches (DAgger). With route hysteresis (``commit_dist`` > 0) it also remembers each env's last path;
@@ -142,10 +142,11 @@ class ExpertConfig:
     """How much longer than the fresh trace the committed path may be [m]."""
     curv_window: int = 3
     """Samples on either side over which the turning angle is measured (curvature = angle / arc length)."""
-    lat_accel: float = 8.0
-    """Lateral acceleration the speed profile allows in turns [m/s^2] (12 before route hysteresis, 2026-11-27)."""
-    brake_accel: float = 6.0
-    """Deceleration the speed profile plans with [m/s^2]."""
+    lat_accel: float = 10.5
+    """Lateral acceleration the speed profile allows in turns [m/s^2] (12 before route hysteresis, 2026-11-27; 8 with
+    the ``tangent`` tracker until 2026-11-29)."""
+    brake_accel: float = 8.0
+    """Deceleration the speed profile plans with [m/s^2] (6 until 2026-11-29)."""
     accel_budget: float = 0.0
     """Horizontal acceleration that turning and braking share in the speed profile's backward pass [m/s^2] (a
     friction circle, :func:`speed_profile`; at most ``brake_accel`` of it brakes). 0: off, the two are separate
@@ -160,7 +161,7 @@ class ExpertConfig:
     """Pure-pursuit look-ahead time [s]."""
     lookahead_min: float = 1.0
     """Pure-pursuit look-ahead floor [m]."""
-    tracker: str = "tangent"
+    tracker: str = "mppi"
     """Reference direction: ``chord`` (pure pursuit: towards the path point ``max(lookahead_min, |v| lookahead_s)``
     ahead; cuts inside bends by the chord's sagitta) or ``tangent`` (the path's direction between the reference
     sample and ``tangent_span`` samples after it, plus ``k_x`` times the offset of the reference sample from the
@@ -199,7 +200,7 @@ class ExpertConfig:
     """``preview``: weight of the commanded acceleration [s^4/m^2]."""
     preview_r_jerk: float = 0.003
     """``preview``: weight of each change of the command between intervals (the first from the acceleration now)."""
-    preview_accel: float = 8.0
+    preview_accel: float = 10.0
     """``preview``: acceleration with which the reference speeds up along the path from the current speed [m/s^2]."""
     preview_drag: float = 1.0
     """``preview``: share of the nominal drag (:func:`drag_accel`) the model carries as a known disturbance."""
@@ -230,8 +231,8 @@ class ExpertConfig:
     """``mppi``: cost of a predicted position closer than the vehicle's collision radius."""
     mppi_vert_accel: float = 5.0
     """``mppi``: largest vertical input the samples may use [m/s^2]."""
-    max_tilt_deg: float = 48.0
-    """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50)."""
+    max_tilt_deg: float = 50.0
+    """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50; 48 until 2026-11-29)."""
     visibility: str = "map"
     """What the speed profile may plan on. ``map``: the whole path, including bends round obstacles the camera does
     not show yet (privileged look-ahead). ``camera``: the path only up to its first sample the depth camera cannot

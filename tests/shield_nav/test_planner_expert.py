@@ -365,9 +365,9 @@ def test_drag_feedforward_adds_the_models_drag_to_the_command():
     """drag_ff w: the commanded acceleration is the plain one minus w times the nominal drag at the current state."""
     env = _env(n=4, speed=7.0)
     env.vehicles.vel_w[:] = np.array([6.0, 0.5, 0.0])
-    plain = PlannerController(BaselineConfig())
+    plain = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent")))  # drag_ff acts on tangent's loop
     plain.commands(env)
-    comp = PlannerController(BaselineConfig(expert=ExpertConfig(drag_ff=0.5)))
+    comp = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent", drag_ff=0.5)))
     comp.commands(env)
     drag = drag_accel(env.vehicles.vel_w, env.vehicles.R_wb, env.cfg.vehicle.airframe)
     assert np.all(drag[:, 0] < -1.5)  # ~0.3 * 6 + 0.4: against the motion
@@ -380,7 +380,7 @@ def test_drag_feedforward_closes_the_velocity_loops_steady_error():
     errs = {}
     for w in (0.0, 1.0):
         env = _env(n=4, speed=5.0)
-        ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(drag_ff=w, ff_gain=0.0)))
+        ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent", drag_ff=w, ff_gain=0.0)))
         short = []
         for step in range(250):
             cmd = ctrl.commands(env)

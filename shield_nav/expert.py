@@ -868,62 +868,61 @@ class PlannerController:
         a = a_ff + ec.k_v * (v_ref - vel)
         if ec.drag_ff > 0:
             a = a - ec.drag_ff * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
-        if ec.tracker == "preview":
-            a_p, v_p = self._preview(env, plan)
+        if ec.tracker in ("preview", "mppi"):  # mppi samples round the preview command
+            model = self._lag_model(env, plan)
+            a_p, v_p = self._preview(model)
+            if ec.tracker == "mppi":
+                a_p = self._mppi(env, model, a_p)
             wide = ~self.fallback[:, None]
             a, v_ref = np.where(wide, a_p, a), np.where(wide, v_p, v_ref)
-        elif ec.tracker == "mppi":  # sampled round the preview command, which it starts from
-            a_p, v_p = self._preview(env, plan)
-            wide = ~self.fallback[:, None]
-            a, v_ref = np.where(wide, self._mppi(env, plan, a_p), a), np.where(wide, v_p, v_ref)
         psi = np.arctan2(chord[:, 1], chord[:, 0])
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a, "k_ref": k_ref}
         return accel_to_command(a, psi, track, env.cfg.vehicle.gravity)
 
-    def _model_state(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
-        """The inner-loop model's state (N, 3 axes, [p, v, a]) and the thrust vector's acceleration now (N, 3)."""
+    def _lag_model(self, env: Any, plan: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """What the preview and sampling trackers read, computed once per step.
+
+        The inner-loop model's state ``x0`` (N, 3 axes, [p, v, a]), the thrust vector's acceleration now ``a_thr``
+        (N, 3), the nominal drag ``drag`` (N, 3) and the timed reference ``ref_p``, ``ref_v`` (N, steps, 3) over the
+        longer of their horizons.
+        """
+        ec = self.ec
         veh = env.vehicles
+        vel = veh.vel_w
         a_thr = veh.R_wb[:, :, 2] * (veh.motor_thrust_buf.sum(axis=1) / veh.nominal_mass)[:, None]
         a_thr[:, 2] -= env.cfg.vehicle.gravity
-        return np.stack((env.local_pos, veh.vel_w, a_thr), axis=2), a_thr
-
-    def _timed(self, plan: dict[str, np.ndarray], vel: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
-        """The timed reference (N, steps, 3) positions and velocities, from the vehicle's speed along the path."""
-        ec = self.ec
         path, v_prof = plan["path"], plan["speed"]
         # The reference starts from the vehicle's speed along the path (not |v|: after a turn of the route the
         # vehicle does not yet move along it).
         ahead = _unit(path[:, min(ec.tangent_span, path.shape[1] - 1)] - path[:, 0])
         along = np.maximum(np.einsum("ni,ni->n", vel, ahead), 0.0)
-        return timed_reference(path, v_prof, along, ec.preview_accel, ec.preview_dt, steps)
+        steps = max(ec.preview_steps, ec.mppi_steps) if ec.tracker == "mppi" else ec.preview_steps
+        ref_p, ref_v = timed_reference(path, v_prof, along, ec.preview_accel, ec.preview_dt, steps)
+        return {"x0": np.stack((env.local_pos, vel, a_thr), axis=2), "a_thr": a_thr, "ref_p": ref_p, "ref_v": ref_v,
+                "drag": ec.preview_drag * drag_accel(vel, veh.R_wb, env.cfg.vehicle.airframe)}  # fmt: skip
 
-    def _mppi(self, env: Any, plan: dict[str, np.ndarray], nominal: np.ndarray) -> np.ndarray:
+    def _mppi(self, env: Any, model: dict[str, np.ndarray], nominal: np.ndarray) -> np.ndarray:
         """Accelerations (N, 3) of the ``mppi`` tracker (:mod:`shield_nav.mppi`) round the nominal command."""
         ec = self.ec
         m = self.mppi
-        vel = env.vehicles.vel_w
-        x0, _ = self._model_state(env)
-        ref_p, ref_v = self._timed(plan, vel, ec.mppi_steps)
-        drag = ec.preview_drag * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
-        g = env.cfg.vehicle.gravity
+        t = ec.mppi_steps
         base = m.warm_start(nominal, env.episode_length_buf, env.cfg.vehicle.command_dt)
-        u = clamp_inputs(m.candidates(base, nominal, ec.mppi_sigma, ec.mppi_sigma_z, ec.mppi_hold), g,
-                         ec.max_tilt_deg, ec.mppi_vert_accel)  # fmt: skip
+        u = clamp_inputs(m.candidates(base, nominal, ec.mppi_sigma, ec.mppi_sigma_z, ec.mppi_hold),
+                         env.cfg.vehicle.gravity, ec.max_tilt_deg, ec.mppi_vert_accel)  # fmt: skip
         ef = env.field_stack.kernel_fields(env.scene_id_buf)
         costs = np.empty(u.shape[:2])
-        rollout_costs(np.ascontiguousarray(x0), u, np.ascontiguousarray(drag), ref_p, ref_v, m.a_mat, m.b_vec,
-                      m.e_vec, ec.mppi_q_pos, ec.mppi_q_vel, ec.mppi_r_acc, ec.mppi_w_clear, ec.mppi_clearance,
-                      ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7], costs)  # fmt: skip
+        rollout_costs(np.ascontiguousarray(model["x0"]), u, np.ascontiguousarray(model["drag"]),
+                      np.ascontiguousarray(model["ref_p"][:, :t]), np.ascontiguousarray(model["ref_v"][:, :t]),
+                      m.a_mat, m.b_vec, m.e_vec, ec.mppi_q_pos, ec.mppi_q_vel, ec.mppi_r_acc, ec.mppi_w_clear,
+                      ec.mppi_clearance, ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7],
+                      costs)  # fmt: skip
         m.plan = path_integral_mean(u, costs, ec.mppi_temperature)
         return m.plan[:, 0]
 
-    def _preview(self, env: Any, plan: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def _preview(self, model: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""
-        ec = self.ec
-        vel = env.vehicles.vel_w
-        x0, a_thr = self._model_state(env)
-        ref_p, ref_v = self._timed(plan, vel, ec.preview_steps)
-        ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(vel), 3, -1)  # (N, 3, 2 steps)
-        d = ec.preview_drag * drag_accel(vel, env.vehicles.R_wb, env.cfg.vehicle.airframe)
-        return self.gains.first_input(ref, x0, d, a_thr), ref_v[:, 0]
+        t = self.ec.preview_steps
+        ref_p, ref_v = model["ref_p"][:, :t], model["ref_v"][:, :t]
+        ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(ref_p), 3, -1)  # (N, 3, 2 steps)
+        return self.gains.first_input(ref, model["x0"], model["drag"], model["a_thr"]), ref_v[:, 0]

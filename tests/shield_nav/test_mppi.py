@@ -166,20 +166,6 @@ def test_with_vanishing_noise_the_first_command_is_the_preview_trackers():
     assert mppi.mppi.plan.shape == (4, ec.mppi_steps, 3)
 
 
-def test_mppi_tracker_hands_the_narrow_field_to_the_tangent_tracker():
-    """In a box maze (benchmark scene 14) the expert descends the narrow field, and there mppi commands as tangent."""
-    over = {"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False, "curriculum.enabled": False}
-    env = NavigationEnv(num_envs=4, **over)
-    env.reset(seed=2)
-    env.vehicles.vel_w[:] = np.array([1.0, -0.5, 0.0])
-    mppi = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="mppi")))
-    cmd_m = mppi.commands(env)
-    tang = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent")))
-    cmd_t = tang.commands(env)
-    assert mppi.fallback.all()
-    np.testing.assert_allclose(cmd_m, cmd_t, atol=1e-12)
-
-
 def test_mppi_tracker_flies_the_open_scenes():
     """Real physics: the sampling expert leaves the start and flies 1.5 s at 7 m/s without touching anything."""
     env = _nav_env(4, 7.0)

@@ -166,14 +166,15 @@ def test_preview_tracker_commands_the_gains_first_input():
             assert last["a"][i, ax] == pytest.approx(u, abs=1e-9)
 
 
-def test_preview_tracker_hands_the_narrow_field_to_the_tangent_tracker():
+@pytest.mark.parametrize("tracker", ["preview", "mppi"])
+def test_preview_tracker_hands_the_narrow_field_to_the_tangent_tracker(tracker):
     """Where the inflated field closes the way (benchmark scene 14, a box maze) the expert descends the narrow field;
-    there the preview tracker's command is the tangent tracker's, for the same plan."""
+    there the preview tracker's command, and the sampling tracker's round it, is the tangent tracker's."""
     env = NavigationEnv(num_envs=4, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
                                        "curriculum.enabled": False})  # fmt: skip
     env.reset(seed=2)
     env.vehicles.vel_w[:] = np.array([1.0, -0.5, 0.0])
-    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="preview")))
+    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker=tracker)))
     cmd_p = prev.commands(env)
     tang = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent")))
     cmd_t = tang.commands(env)

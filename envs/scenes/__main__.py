@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m envs.scenes stats --family benchmark [--resolution 0.1] [--json]
+    python -m envs.scenes stats --family benchmark [--resolution 0.1] [--seed S] [--json]
     python -m envs.scenes plot --family ablation --index 3 --out scene.png
     python -m envs.scenes export --family forest --index 0 --out forest0.glb   # or .obj, .json, .xml
 """
@@ -25,6 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--indices", default=None, help="comma-separated indices (default: all)")
     s.add_argument("--resolution", type=float, default=0.1)
     s.add_argument("--vehicle-radius", type=float, default=0.2)
+    s.add_argument("--seed", type=int, default=None,
+                   help="scene seed (default: the family's own, i.e. the held-out scenes; validation draws use others)")  # fmt: skip
     s.add_argument("--json", action="store_true", help="print one JSON list as the last line")
     q = sub.add_parser("plot", help="save a top-down PNG of one scene")
     q.add_argument("--family", required=True, choices=sorted(FAMILIES))
@@ -45,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         idx = range(fam.size) if args.indices is None else [int(i) for i in args.indices.split(",")]
         rows = []
         for i in idx:
-            scene = make_scene(args.family, i)
+            scene = make_scene(args.family, i, seed=args.seed)
             fields = build_fields(scene, args.resolution, args.vehicle_radius)
             rows.append(scene_stats(scene, fields))
             print(f"[stats] {args.family}/{i}: built in {fields.info.get('build_s', 0.0):.2f} s "

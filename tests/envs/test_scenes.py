@@ -258,3 +258,21 @@ def test_bottleneck_clearance_by_hand():
     assert 0.7 <= r <= 0.8
     esdf[5, 1] = esdf[5, 3] = -0.5  # both routes cut
     assert bottleneck_clearance(esdf, start, goal, 1.0) == 0.0
+
+
+def test_stats_command_reads_the_scene_seed(capsys):
+    """``python -m envs.scenes stats --seed S`` tabulates the scene drawn at seed S (validation draws), the same row
+    as scene_stats on make_scene(..., seed=S); without --seed, the family's own (held-out) scene."""
+    from envs.fields import build_fields
+    from envs.scenes.__main__ import main
+    from envs.scenes.stats import scene_stats
+
+    def row(*extra):
+        assert main(["stats", "--family", "ablation", "--indices", "0", "--resolution", "0.4", "--json", *extra]) == 0
+        return json.loads(capsys.readouterr().out.strip().splitlines()[-1])[0]
+
+    seeded, held_out = row("--seed", "1160000"), row()
+    for seed, got in ((1160000, seeded), (None, held_out)):
+        scene = make_scene("ablation", 0, seed=seed)
+        assert got == pytest.approx(scene_stats(scene, build_fields(scene, 0.4, 0.2)), nan_ok=True)
+    assert seeded["occupied_%"] != held_out["occupied_%"]

@@ -25,8 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--indices", default=None, help="comma-separated indices (default: all)")
     s.add_argument("--resolution", type=float, default=0.1)
     s.add_argument("--vehicle-radius", type=float, default=0.2)
-    s.add_argument("--seed", type=int, default=None,
-                   help="scene seed (default: the family's own, i.e. the held-out scenes; validation draws use others)")  # fmt: skip
+    s.add_argument("--seed", type=int, default=None, help="scene seed (default: the family's own, held-out scenes)")
     s.add_argument("--json", action="store_true", help="print one JSON list as the last line")
     q = sub.add_parser("plot", help="save a top-down PNG of one scene")
     q.add_argument("--family", required=True, choices=sorted(FAMILIES))

@@ -22,6 +22,8 @@ than a difference between the rows (docs/evaluation.md, "Reproducing a table").
 ``--below-tops`` counts a success only where the flight stayed below the obstacles' tops (the trial's
 ``metrics.flew_over`` is 0): a shield or policy that lets the vehicle climb over the clutter can gain successes that
 way, which the plain comparison would credit (docs/evaluation.md). A trial recorded without the metric is refused.
+Without the flag the report still counts each side's successes over the tops (``a_over``, ``b_over``) and warns when
+the flights over the tops could account for B's lead (or A's), so such a gain is not credited unnoticed.
 
 Several pairs (``A1 B1 A2 B2 ...``) are replicates of one comparison, e.g. the same two training recipes run with
 two training seeds: each pair is reported on its own, then **pooled**, the discordant pairs of all replicates summed
@@ -36,11 +38,20 @@ import argparse
 import glob
 import json
 import os
+from typing import Any
 
 from shield_nav.evaluation import wilson_interval
 from shield_nav.provenance import format_differences, version_differences
 
-__all__ = ["compare", "compare_pooled", "mcnemar_exact", "paired_outcomes", "row_trials"]
+__all__ = [
+    "compare",
+    "compare_pooled",
+    "mcnemar_exact",
+    "over_tops_note",
+    "paired_outcomes",
+    "paired_trials",
+    "row_trials",
+]
 
 
 def mcnemar_exact(a_only: int, b_only: int) -> float:
@@ -88,6 +99,20 @@ def _packages(spec: str) -> dict | None:
         return json.load(fh).get("packages")
 
 
+def _over_tops(pairs_trials: list[tuple[tuple, dict, dict]], side: int) -> int | None:
+    """How many of one side's successes passed over the obstacles' tops (None if a success lacks the metric)."""
+    n = 0
+    for _key, *trials in pairs_trials:
+        t = trials[side]
+        if t["outcome"] != "success":
+            continue
+        over = t.get("metrics", {}).get("flew_over")
+        if over is None:
+            return None
+        n += bool(over)
+    return n
+
+
 def _succeeded(trial: dict, below_tops: bool, key: tuple) -> bool:
     """Whether ``trial`` reached the goal (and, with ``below_tops``, did so without passing over the obstacles)."""
     if trial["outcome"] != "success":
@@ -100,12 +125,8 @@ def _succeeded(trial: dict, below_tops: bool, key: tuple) -> bool:
     return not over
 
 
-def paired_outcomes(
-    a: str, b: str, speeds: list[float] | None = None, below_tops: bool = False
-) -> list[tuple[tuple, bool, bool]]:
-    """The trials both rows flew: ``(key, a_succeeded, b_succeeded)``, sorted by key.
-
-    With ``below_tops`` a success over the obstacles' tops counts as a failure.
+def paired_trials(a: str, b: str, speeds: list[float] | None = None) -> list[tuple[tuple, dict, dict]]:
+    """The trials both rows flew: ``(key, trial_a, trial_b)``, sorted by key.
 
     Raises:
         ValueError: No common trial, or a common trial whose seed, start or goal differ between the two.
@@ -121,13 +142,32 @@ def paired_outcomes(
             if field in x and field in y and x[field] != y[field]:
                 raise ValueError(f"trial {key} differs in {field!r} between {a} and {b}: not the same trials "
                                  "(different eval --seed?)")  # fmt: skip
-        pairs.append((key, _succeeded(x, below_tops, key), _succeeded(y, below_tops, key)))
+        pairs.append((key, x, y))
     return pairs
 
 
+def paired_outcomes(
+    a: str, b: str, speeds: list[float] | None = None, below_tops: bool = False
+) -> list[tuple[tuple, bool, bool]]:
+    """The trials both rows flew: ``(key, a_succeeded, b_succeeded)``, sorted by key.
+
+    With ``below_tops`` a success over the obstacles' tops counts as a failure.
+
+    Raises:
+        ValueError: No common trial, or a common trial whose seed, start or goal differ between the two.
+    """
+    return [(key, _succeeded(x, below_tops, key), _succeeded(y, below_tops, key))
+            for key, x, y in paired_trials(a, b, speeds)]  # fmt: skip
+
+
 def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool = False) -> dict:
-    """Paired success rates, discordant counts and the exact McNemar p-value of rows ``a`` and ``b``."""
-    pairs = paired_outcomes(a, b, speeds, below_tops)
+    """Paired success rates, discordant counts and the exact McNemar p-value of rows ``a`` and ``b``.
+
+    ``a_over`` and ``b_over`` count each side's successes that passed over the obstacles' tops (before
+    ``below_tops`` discounts them; None where a success does not record ``metrics.flew_over``).
+    """
+    trials = paired_trials(a, b, speeds)
+    pairs = [(key, _succeeded(x, below_tops, key), _succeeded(y, below_tops, key)) for key, x, y in trials]
     n = len(pairs)
     sa, sb = sum(p[1] for p in pairs), sum(p[2] for p in pairs)
     a_only = sum(p[1] and not p[2] for p in pairs)
@@ -138,6 +178,7 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
         "b_success": sb / n, "b_interval": list(wilson_interval(sb, n)),
         "a_only": a_only, "b_only": b_only, "p_mcnemar": mcnemar_exact(a_only, b_only),
         "speeds": sorted({p[0][2] for p in pairs}), "below_tops": below_tops,
+        "a_over": _over_tops(trials, 0), "b_over": _over_tops(trials, 1),
         "package_differences": version_differences(_packages(a), _packages(b)),
     }  # fmt: skip
 
@@ -156,8 +197,37 @@ def compare_pooled(specs: list[tuple[str, str]], speeds: list[float] | None = No
         "a_success": sa / n, "a_interval": list(wilson_interval(sa, n)),
         "b_success": sb / n, "b_interval": list(wilson_interval(sb, n)),
         "a_only": a_only, "b_only": b_only, "p_mcnemar": mcnemar_exact(a_only, b_only),
+        "a_over": _sum_or_none(r["a_over"] for r in pairs), "b_over": _sum_or_none(r["b_over"] for r in pairs),
+        "below_tops": below_tops,
     }  # fmt: skip
     return {"pairs": pairs, "pooled": pooled}
+
+
+def _sum_or_none(values: Any) -> int | None:
+    """The sum of ``values``, or None if any is None."""
+    values = list(values)
+    return None if any(v is None for v in values) else sum(values)
+
+
+def over_tops_note(res: dict) -> str | None:
+    """A warning when the flights over the obstacles' tops could account for one side's lead, else None.
+
+    The lead is the difference of the two success counts; the note is written when the leading side has at least
+    that many more successes over the tops than the other (the comparison without them may then reverse). Not for
+    a ``below_tops`` comparison, which has already discounted them, nor where the metric is missing.
+    """
+    a_over, b_over = res.get("a_over"), res.get("b_over")
+    if res.get("below_tops") or a_over is None or b_over is None:
+        return None
+    sa, sb = round(res["a_success"] * res["n"]), round(res["b_success"] * res["n"])
+    lead, extra = abs(sb - sa), (b_over - a_over) if sb >= sa else (a_over - b_over)
+    if extra <= 0 or extra < lead:
+        return None
+    side = "B" if sb >= sa else "A"
+    return (
+        f"note: {side}'s lead ({lead} successes) is within its extra flights over the obstacles' tops ({extra}); "
+        "compare with --below-tops before crediting it"
+    )
 
 
 def format_report(res: dict) -> str:
@@ -168,15 +238,22 @@ def format_report(res: dict) -> str:
 
     lo_a, hi_a = res["a_interval"]
     lo_b, hi_b = res["b_interval"]
-    return "\n".join([
+    lines = [
         f"{res['n']} paired trials at {', '.join(f'{s:g}' for s in res['speeds'])} m/s"
         + (" (successes below the obstacles' tops only)" if res.get("below_tops") else ""),
         f"A {res['a']}: {pct(res['a_success'])} % [{pct(lo_a)}, {pct(hi_a)}]",
         f"B {res['b']}: {pct(res['b_success'])} % [{pct(lo_b)}, {pct(hi_b)}]",
         f"discordant: A only {res['a_only']}, B only {res['b_only']}; exact McNemar p = {res['p_mcnemar']:.2g}",
-    ] + ([f"note: flown with different package versions (A / B: {format_differences(diff)}); some discordant pairs "
-          "may be floating-point divergence, not the rows (docs/evaluation.md, 'Reproducing a table')"]
-         if (diff := res.get("package_differences")) else []))  # fmt: skip
+    ]
+    if not res.get("below_tops") and (res.get("a_over") or res.get("b_over")):
+        lines.append(f"successes over the obstacles' tops: A {res['a_over']}, B {res['b_over']}")
+    if note := over_tops_note(res):
+        lines.append(note)
+    if diff := res.get("package_differences"):
+        lines.append(f"note: flown with different package versions (A / B: {format_differences(diff)}); some "
+                     "discordant pairs may be floating-point divergence, not the rows (docs/evaluation.md, "
+                     "'Reproducing a table')")  # fmt: skip
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\npooled over {p['replicates']} replicates, {p['n']} paired trials: "
               f"A {100 * p['a_success']:.1f} %, B {100 * p['b_success']:.1f} %; discordant: A only {p['a_only']}, "
               f"B only {p['b_only']}; exact McNemar p = {p['p_mcnemar']:.2g}")  # fmt: skip
+        if note := over_tops_note(p):
+            print(note)
     return 0
 
 

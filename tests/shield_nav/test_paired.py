@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from shield_nav.paired import compare, compare_pooled, main, mcnemar_exact, paired_outcomes
+from shield_nav.paired import compare, compare_pooled, main, mcnemar_exact, over_tops_note, paired_outcomes
 
 
 def test_mcnemar_exact_by_hand():
@@ -145,3 +145,31 @@ def test_report_names_the_packages_the_two_sides_were_flown_with_when_they_diffe
     (tmp_path / "a" / "manifest.json").write_text(json.dumps(man))
     main([a, b])
     assert "package versions" not in capsys.readouterr().out
+
+
+def test_plain_report_counts_flights_over_the_tops_and_warns_when_they_carry_the_lead(tmp_path, capsys):
+    s, c = "success", "collision"
+    # A: 3 successes, none over. B: 5 successes, 3 of them over the tops: B leads by 2, with 3 extra over the tops.
+    _write(tmp_path / "a", "old", [s, s, s, c, c, c], over=[0, 0, 0, 0, 0, 0])
+    _write(tmp_path / "b", "new", [s, s, s, s, s, c], over=[0, 0, 1, 1, 1, 0])
+    a, b = f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new"
+    res = compare(a, b)
+    assert (res["a_over"], res["b_over"]) == (0, 3)
+    assert over_tops_note(res) == ("note: B's lead (2 successes) is within its extra flights over the obstacles' tops "
+                                   "(3); compare with --below-tops before crediting it")  # fmt: skip
+    main([a, b])
+    out = capsys.readouterr().out
+    assert "successes over the obstacles' tops: A 0, B 3" in out and "note: B's lead (2 successes)" in out
+    # Below the tops the note has nothing left to say: B 2 of 6 against A's 3.
+    tops = compare(a, b, below_tops=True)
+    assert tops["b_success"] == pytest.approx(2 / 6) and over_tops_note(tops) is None
+    # A lead larger than the extra flights over the tops is not flagged (B 5, 1 over; A 3, none).
+    _write(tmp_path / "d", "new", [s, s, s, s, s, c], over=[0, 0, 0, 0, 1, 0])
+    assert over_tops_note(compare(a, f"{tmp_path / 'd'}:new")) is None
+    # Pooled over two replicates: the counts add up (0 + 0 against 3 + 3), and so does the lead (4 <= 6).
+    pooled = compare_pooled([(a, b), (a, b)])["pooled"]
+    assert (pooled["a_over"], pooled["b_over"]) == (0, 6) and "lead (4 successes)" in over_tops_note(pooled)
+    # A trial file without the metric: the counts are unknown and nothing is claimed.
+    _write(tmp_path / "e", "bare", [s, s, s, s, s, c])
+    bare = compare(a, f"{tmp_path / 'e'}:bare")
+    assert bare["b_over"] is None and over_tops_note(bare) is None

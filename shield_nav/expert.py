@@ -231,6 +231,11 @@ class ExpertConfig:
     """``mppi``: cost of a predicted position closer than the vehicle's collision radius."""
     mppi_vert_accel: float = 5.0
     """``mppi``: largest vertical input the samples may use [m/s^2]."""
+    mppi_below_tops: bool = False
+    """``mppi``: the plane at the obstacles' top plus the collision radius (the scene's top ``bounds_hi.z``; above it
+    the vehicle's sphere passes over every obstacle, the evaluation's ``flew_over``) counts as a ceiling in the
+    rollout cost, so the sampled command does not climb over the clutter where it is tight (the volume allows 1 m
+    more). Off by default: the sampling expert's DAgger students learned to climb (lab log 2026-11-29, session 56)."""
     max_tilt_deg: float = 50.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50; 48 until 2026-11-29)."""
     visibility: str = "map"
@@ -916,9 +921,20 @@ class PlannerController:
                       np.ascontiguousarray(model["ref_p"][:, :t]), np.ascontiguousarray(model["ref_v"][:, :t]),
                       m.a_mat, m.b_vec, m.e_vec, ec.mppi_q_pos, ec.mppi_q_vel, ec.mppi_r_acc, ec.mppi_w_clear,
                       ec.mppi_clearance, ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7],
-                      costs)  # fmt: skip
+                      costs, self._z_cap(env))  # fmt: skip
         m.plan = path_integral_mean(u, costs, ec.mppi_temperature)
         return m.plan[:, 0]
+
+    def _z_cap(self, env: Any) -> np.ndarray:
+        """Per env, the height whose plane the sampling tracker treats as a ceiling.
+
+        ``inf`` unless ``mppi_below_tops``; else the env's scene top ``bounds_hi.z`` plus the collision radius, in
+        the scene's own frame (that of ``env.local_pos``, which the rollouts start from).
+        """
+        if not self.ec.mppi_below_tops:
+            return np.full(env.num_envs, np.inf)
+        tops = np.array([float(sc.bounds_hi[2]) for sc in env.scenes])
+        return tops[env.scene_id_buf] + env.cfg.vehicle.airframe.collision_radius
 
     def _preview(self, model: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""

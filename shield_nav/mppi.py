@@ -16,7 +16,9 @@ current velocity, held. Each sampled input is clamped to the tilt cone ``|u_xy| 
 **Cost** of a rollout, summed over its ``steps`` predicted states ``(p_k, v_k)``:
 ``q_pos |p_k - r_k|^2 + q_vel |v_k - w_k|^2`` (the timed reference, :func:`shield_nav.preview.timed_reference`)
 ``+ w_clear max(0, clearance - d(p_k))^2 + w_crash [d(p_k) < radius]`` with ``d`` the ESDF (floor and ceiling
-included) and ``radius`` the vehicle's collision radius, ``+ r_acc |u_k|^2``.
+included) and ``radius`` the vehicle's collision radius, ``+ r_acc |u_k|^2``. With a height cap ``z_cap`` (finite
+per env) ``d`` is ``min(ESDF, z_cap - z_k)``: the plane ``z = z_cap`` counts as one more ceiling (the expert's
+``mppi_below_tops`` puts it where a sphere would pass over the obstacles' tops).
 
 **Samples.** ``samples`` sequences per env: sample 0 is the last plan advanced by the control period (its last
 input repeated), sample 1 holds the nominal command (the preview tracker's) over the horizon, the others add Gaussian
@@ -55,12 +57,14 @@ def rollout_costs(
     radius: float,
     e: tuple,
     out: np.ndarray,
+    z_cap: np.ndarray,
 ) -> None:
     """Costs ``out`` (N, S) of input sequences ``u`` (N, S, T, 3) from states ``x0`` (N, 3 axes, [p, v, a]).
 
     ``drag`` (N, 3) is held; ``ref_p``, ``ref_v`` (N, T, 3) the reference at the ends of the T intervals;
     ``a_mat`` (3, 3), ``b_vec`` and ``e_vec`` (3,) the per-axis discretisation (:func:`shield_nav.preview.discretise`);
-    ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin, res, esdf)``. The inputs must already lie
+    ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin, res, esdf)``; ``z_cap`` (N,) a height per
+    env whose plane counts as a ceiling in the clearance and crash terms (``inf``: none). The inputs must already lie
     in the flyable set (:func:`clamp_inputs`).
     """
     n, s_count, t_count, _ = u.shape
@@ -84,6 +88,7 @@ def rollout_costs(
                 cost += q_pos * dp * dp + q_vel * dv * dv + r_acc * ui * ui
             d = trilinear_point(e[0][i], st[0, 0], st[1, 0], st[2, 0], e[1], e[2], e[3], e[4], e[5], e[6], e[5],
                                 True, False, False)[0]  # fmt: skip
+            d = min(d, z_cap[i] - st[2, 0])
             gap = clearance - d
             if gap > 0.0:
                 cost += w_clear * gap * gap

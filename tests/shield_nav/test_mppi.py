@@ -25,7 +25,7 @@ def esdf_fields():
     return stack, stack.kernel_fields(np.zeros(2, dtype=np.int64))[:7]
 
 
-def _costs(fields, x0, u, ref_p, ref_v, **w):
+def _costs(fields, x0, u, ref_p, ref_v, z_cap=None, **w):
     tau, dt = 0.2, 0.04
     a_m, b, e = discretise(tau, dt)
     n, s = u.shape[:2]
@@ -33,7 +33,8 @@ def _costs(fields, x0, u, ref_p, ref_v, **w):
     kw = {"q_pos": 1.0, "q_vel": 0.3, "r_acc": 0.001, "w_clear": 400.0, "clearance": 0.5, "w_crash": 1000.0}
     kw.update(w)
     rollout_costs(x0, u, np.zeros((n, 3)), ref_p, ref_v, a_m, b, e, kw["q_pos"], kw["q_vel"], kw["r_acc"],
-                  kw["w_clear"], kw["clearance"], kw["w_crash"], 0.2, fields, out)  # fmt: skip
+                  kw["w_clear"], kw["clearance"], kw["w_crash"], 0.2, fields, out,
+                  np.full(n, np.inf) if z_cap is None else np.asarray(z_cap, dtype=float))  # fmt: skip
     return out
 
 
@@ -70,6 +71,22 @@ def test_clearance_and_crash_costs_read_the_esdf(esdf_fields):
     ref_p = np.repeat(x0[:, None, :, 0], steps, axis=1)
     out = _costs(fields, x0, np.zeros((2, 1, steps, 3)), ref_p, np.zeros((2, steps, 3)))
     np.testing.assert_allclose(out[:, 0], steps * (400.0 * (0.5 - d) ** 2 + np.array([0.0, 1000.0])), rtol=1e-9)
+
+
+def test_a_height_cap_counts_as_a_ceiling_in_the_clearance_and_crash_terms(esdf_fields):
+    """Hovering in free space (ESDF >= 1 m: 1.5 m above the floor, 2.1 m from the box) under a cap 0.3 m and 0.1 m
+    above: (0.5 - 0.3)^2 x 400 = 16 per step, and (0.5 - 0.1)^2 x 400 + 1000 = 1064 within the 0.2 m radius; no cap
+    (inf) or a cap far above costs nothing."""
+    _, fields = esdf_fields  # the fields index two envs
+    steps = 4
+    x0 = np.zeros((2, 3, 3))
+    x0[:, :, 0] = (1.5, -2.0, 1.5)
+    ref_p = np.repeat(x0[:, None, :, 0], steps, axis=1)
+    hover = np.zeros((2, 1, steps, 3))
+    out = _costs(fields, x0, hover, ref_p, np.zeros((2, steps, 3)), z_cap=[1.8, 1.6])
+    np.testing.assert_allclose(out[:, 0], [steps * 16.0, steps * 1064.0], rtol=1e-9)
+    out = _costs(fields, x0, hover, ref_p, np.zeros((2, steps, 3)), z_cap=[np.inf, 5.0])
+    np.testing.assert_allclose(out[:, 0], [0.0, 0.0], atol=1e-12)
 
 
 def test_clamp_inputs_to_the_vertical_limit_then_the_tilt_cone():
@@ -142,6 +159,17 @@ def _nav_env(n: int, speed: float, **over) -> NavigationEnv:
     env = NavigationEnv(num_envs=n, **kw)
     env.reset(seed=3)
     return env
+
+
+def test_below_tops_caps_each_env_at_its_scene_top_plus_the_radius():
+    env = _nav_env(3, 5.0)
+    top = np.array([float(env.scenes[k].bounds_hi[2]) for k in env.scene_id_buf])
+    radius = env.cfg.vehicle.airframe.collision_radius
+    capped = PlannerController(BaselineConfig(expert=ExpertConfig(mppi_below_tops=True)))
+    np.testing.assert_allclose(capped._z_cap(env), top + radius)
+    assert np.isinf(PlannerController(BaselineConfig(expert=ExpertConfig()))._z_cap(env)).all()
+    cmd = capped.commands(env)  # the capped tracker runs end to end and gives finite commands
+    assert cmd.shape == (3, 4) and np.isfinite(cmd).all()
 
 
 def test_with_vanishing_noise_the_first_command_is_the_preview_trackers():

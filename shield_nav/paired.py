@@ -213,17 +213,24 @@ def over_tops_note(res: dict) -> str | None:
     """A warning when the flights over the obstacles' tops could account for one side's lead, else None.
 
     The lead is the difference of the two success counts; the note is written when the leading side has at least
-    that many more successes over the tops than the other (the comparison without them may then reverse). Not for
+    that many more successes over the tops than the other (without them the comparison may then be level or
+    reverse); when the two are level, the side with more of them is named. Not for
     a ``below_tops`` comparison, which has already discounted them, nor where the metric is missing.
     """
     a_over, b_over = res.get("a_over"), res.get("b_over")
     if res.get("below_tops") or a_over is None or b_over is None:
         return None
     sa, sb = round(res["a_success"] * res["n"]), round(res["b_success"] * res["n"])
-    lead, extra = abs(sb - sa), (b_over - a_over) if sb >= sa else (a_over - b_over)
+    if sb == sa:  # level: warn if one side is level only by its flights over the tops
+        side, extra = ("B", b_over - a_over) if b_over >= a_over else ("A", a_over - b_over)
+        if extra == 0:
+            return None
+        return (f"note: level, {side} with {extra} more flights over the obstacles' tops; compare with --below-tops "
+                "before crediting it")  # fmt: skip
+    lead, extra = abs(sb - sa), (b_over - a_over) if sb > sa else (a_over - b_over)
     if extra <= 0 or extra < lead:
         return None
-    side = "B" if sb >= sa else "A"
+    side = "B" if sb > sa else "A"
     return (
         f"note: {side}'s lead ({lead} successes) is within its extra flights over the obstacles' tops ({extra}); "
         "compare with --below-tops before crediting it"

@@ -169,6 +169,11 @@ def test_plain_report_counts_flights_over_the_tops_and_warns_when_they_carry_the
     # Pooled over two replicates: the counts add up (0 + 0 against 3 + 3), and so does the lead (4 <= 6).
     pooled = compare_pooled([(a, b), (a, b)])["pooled"]
     assert (pooled["a_over"], pooled["b_over"]) == (0, 6) and "lead (4 successes)" in over_tops_note(pooled)
+    # Level (3 against 3), B with 2 more over the tops.
+    _write(tmp_path / "f", "new", [s, s, s, c, c, c], over=[0, 1, 1, 0, 0, 0])
+    assert over_tops_note(compare(a, f"{tmp_path / 'f'}:new")) == (
+        "note: level, B with 2 more flights over the obstacles' tops; compare with --below-tops before crediting it"
+    )
     # A trial file without the metric: the counts are unknown and nothing is claimed.
     _write(tmp_path / "e", "bare", [s, s, s, s, s, c])
     bare = compare(a, f"{tmp_path / 'e'}:bare")

@@ -235,7 +235,7 @@ class ExpertConfig:
     """``mppi``: the plane at the obstacles' top plus the collision radius (the scene's top ``bounds_hi.z``; above it
     the vehicle's sphere passes over every obstacle, the evaluation's ``flew_over``) counts as a ceiling in the
     rollout cost, so the sampled command does not climb over the clutter where it is tight (the volume allows 1 m
-    more). Off by default: the sampling expert's DAgger students learned to climb (lab log 2026-11-29, session 56)."""
+    more; docs/expert.md, "Below the tops")."""
     max_tilt_deg: float = 50.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50; 48 until 2026-11-29)."""
     visibility: str = "map"
@@ -558,6 +558,7 @@ class PlannerController:
         self.cfg = cfg
         self.ec: ExpertConfig = cfg.expert
         self._own: tuple | None = None
+        self._caps: tuple | None = None  # (env, per-scene height caps) of mppi_below_tops
         self.last: dict[str, np.ndarray] = {}
         self.fallback = np.zeros(0, dtype=bool)
         """(N,) bool of the last trace: envs that descended the narrow field (the inflated one was flat)."""
@@ -929,12 +930,15 @@ class PlannerController:
         """Per env, the height whose plane the sampling tracker treats as a ceiling.
 
         ``inf`` unless ``mppi_below_tops``; else the env's scene top ``bounds_hi.z`` plus the collision radius, in
-        the scene's own frame (that of ``env.local_pos``, which the rollouts start from).
+        the scene's own frame (that of ``env.local_pos``, which the rollouts start from). The per-scene values are
+        computed once per env, as the fields are.
         """
         if not self.ec.mppi_below_tops:
             return np.full(env.num_envs, np.inf)
-        tops = np.array([float(sc.bounds_hi[2]) for sc in env.scenes])
-        return tops[env.scene_id_buf] + env.cfg.vehicle.airframe.collision_radius
+        if self._caps is None or self._caps[0] is not env:
+            radius = env.cfg.vehicle.airframe.collision_radius
+            self._caps = (env, np.array([float(sc.bounds_hi[2]) + radius for sc in env.scenes]))
+        return self._caps[1][env.scene_id_buf]
 
     def _preview(self, model: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""

@@ -6,6 +6,7 @@ unknown keys and bad values fail at construction with the full dotted key.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from envs.camera import CameraConfig, DepthNoiseConfig
@@ -68,7 +69,13 @@ class ActionConfig:
     max_tilt_deg: float = 45.0
     """Roll and pitch references at action +-1 [deg]."""
     yaw_range_deg: float = 60.0
-    """Yaw reference relative to the current heading at action +-1 [deg] (a heading lead, rate-like)."""
+    """Yaw reference relative to the yaw base (``yaw_base``) at action +-1 [deg] (a heading lead, rate-like)."""
+    yaw_base: str = "heading"
+    """What the yaw action leads: ``heading`` (default: the current heading, so action 0 holds it) or ``velocity``
+    (the heading of the horizontal velocity, so action 0 turns the camera towards the direction of travel; below
+    ``yaw_base_speed`` it blends linearly back to the current heading, which is the base at hover)."""
+    yaw_base_speed: float = 1.0
+    """With ``yaw_base: velocity``: horizontal speed [m/s] from which the base is the velocity's heading alone."""
 
 
 @dataclass
@@ -274,6 +281,10 @@ class NavConfig:
         )
         require(0 < a.max_tilt_deg <= self.vehicle.controller.max_tilt_deg, f"{prefix}action.max_tilt_deg",
                 "must be in (0, vehicle.controller.max_tilt_deg]")  # fmt: skip
+        require(a.yaw_base in ("heading", "velocity"), f"{prefix}action.yaw_base",
+                f"must be 'heading' or 'velocity', got {a.yaw_base!r}")  # fmt: skip
+        require(math.isfinite(a.yaw_base_speed) and a.yaw_base_speed > 0, f"{prefix}action.yaw_base_speed",
+                f"must be > 0, got {a.yaw_base_speed}")  # fmt: skip
         require(self.collision_margin >= 0, f"{prefix}collision_margin", "must be >= 0")
         require(len(self.critic_depth_pool) == 2, f"{prefix}critic_depth_pool", "must be [rows, cols]")
         lm = self.local_map

@@ -57,7 +57,9 @@ class NavigationEnv(VectorEnv):
     0      collective thrust f_n [m/s^2]           -1 -> ``thrust_min``, 0 -> g (hover), +1 -> ``thrust_max``
     1      roll reference phi [rad]                a * ``max_tilt_deg``
     2      pitch reference theta [rad]             a * ``max_tilt_deg``
-    3      yaw reference psi [rad]                 current heading + a * ``yaw_range_deg`` (relative)
+    3      yaw reference psi [rad]                 yaw base + a * ``yaw_range_deg`` (relative; the base is the
+                                                   current heading, or with ``yaw_base: velocity`` the
+                                                   horizontal velocity's heading, :attr:`yaw_bases`)
     =====  ======================================  =================================================
 
     **Observation** (policy, noisy): ``{"depth": (N, 1, 60, 100) float32 in [0, 1] (inverse depth
@@ -307,22 +309,38 @@ class NavigationEnv(VectorEnv):
         r = self.vehicles.R_wb
         return np.arctan2(r[:, 1, 0], r[:, 0, 0])
 
+    @property
+    def yaw_bases(self) -> np.ndarray:
+        """The heading (N,) [rad] the yaw action leads from (``action.yaw_base``).
+
+        ``heading``: :attr:`headings`. ``velocity``: the horizontal velocity's heading, blended towards the current
+        heading below ``yaw_base_speed`` (weight ``min(|v_h| / yaw_base_speed, 1)`` on the wrapped difference), so
+        the base is continuous through hover and equal to the heading at rest.
+        """
+        a_cfg, heading = self.cfg.action, self.headings
+        if a_cfg.yaw_base == "heading":
+            return heading
+        v = self.vehicles.vel_w
+        speed = np.hypot(v[:, 0], v[:, 1])
+        diff = (np.arctan2(v[:, 1], v[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi
+        return heading + np.minimum(speed / a_cfg.yaw_base_speed, 1.0) * diff
+
     def action_to_command(self, action: np.ndarray) -> np.ndarray:
         """Map normalised actions (N, 4) to vehicle commands (N, 4) = [f_n, phi, theta, psi] (see class doc)."""
         a_cfg, g = self.cfg.action, self.cfg.vehicle.gravity
         a0 = action[:, 0]
         f_n = np.where(a0 >= 0, g + a0 * (a_cfg.thrust_max - g), g + a0 * (g - a_cfg.thrust_min))
         tilt = math.radians(a_cfg.max_tilt_deg)
-        psi = self.headings + action[:, 3] * math.radians(a_cfg.yaw_range_deg)
+        psi = self.yaw_bases + action[:, 3] * math.radians(a_cfg.yaw_range_deg)
         return np.stack((f_n, action[:, 1] * tilt, action[:, 2] * tilt, psi), axis=1)
 
     def command_to_action(self, command: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`action_to_command` at the current headings (unclipped). (N, 4) -> (N, 4)."""
+        """Inverse of :meth:`action_to_command` at the current yaw bases (unclipped). (N, 4) -> (N, 4)."""
         a_cfg, g = self.cfg.action, self.cfg.vehicle.gravity
         f_n = command[:, 0]
         a0 = np.where(f_n >= g, (f_n - g) / (a_cfg.thrust_max - g), (f_n - g) / (g - a_cfg.thrust_min))
         tilt = math.radians(a_cfg.max_tilt_deg)
-        d_psi = (command[:, 3] - self.headings + np.pi) % (2 * np.pi) - np.pi
+        d_psi = (command[:, 3] - self.yaw_bases + np.pi) % (2 * np.pi) - np.pi
         return np.stack((a0, command[:, 1] / tilt, command[:, 2] / tilt, d_psi / math.radians(a_cfg.yaw_range_deg)), 1)
 
     def _update_fields(self) -> None:

@@ -285,6 +285,36 @@ def test_command_path_round_trips_the_action_mapping():
     np.testing.assert_allclose(env.exec_action_buf, a, atol=1e-12)
 
 
+def test_velocity_yaw_base_leads_from_the_direction_of_travel():
+    env = NavigationEnv(num_envs=4, **QUIET, **{"action.yaw_base": "velocity", "action.yaw_base_speed": 2.0})
+    env.reset(seed=0)
+    # Heading 0 for every vehicle (level, identity attitude); horizontal velocities by hand.
+    pos = env.vehicles.pos_w.copy()
+    vel = np.array([[0.0, 3.0, 0.0], [0.0, 1.0, 0.5], [-4.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    env.vehicles.reset(np.arange(4), pos, vel_w=vel)
+    np.testing.assert_allclose(env.headings, 0.0, atol=1e-12)
+    # 3 m/s along +y: base 90 deg; 1 m/s of 2: half way (45 deg), the vertical part ignored; -x: 180 deg
+    # (the wrapped difference is +-pi, either sign is the same heading); at rest: the heading.
+    base = env.yaw_bases
+    np.testing.assert_allclose(base[[0, 1, 3]], [math.pi / 2, math.pi / 4, 0.0], atol=1e-12)
+    assert abs(abs(base[2]) - math.pi) < 1e-12
+    a = np.zeros((4, 4))
+    a[:, 3] = 0.5  # +30 deg lead on the base
+    psi = env.action_to_command(a)[:, 3]
+    np.testing.assert_allclose(psi[[0, 1, 3]], np.radians([120.0, 75.0, 30.0]), atol=1e-12)
+    assert abs((psi[2] - math.radians(210.0) + math.pi) % (2 * math.pi) - math.pi) < 1e-12
+    # The inverse uses the same base, and the default mapping still leads from the heading.
+    np.testing.assert_allclose(env.command_to_action(env.action_to_command(a)), a, atol=1e-12)
+    plain = NavigationEnv(num_envs=4, **QUIET)
+    plain.reset(seed=0)
+    plain.vehicles.reset(np.arange(4), plain.vehicles.pos_w.copy(), vel_w=vel)
+    np.testing.assert_allclose(plain.action_to_command(a)[:, 3], math.radians(30.0), atol=1e-12)
+    with pytest.raises(ConfigError, match=r"action\.yaw_base"):
+        NavigationEnv(num_envs=2, **SMALL, **{"action.yaw_base": "goal"})
+    with pytest.raises(ConfigError, match=r"action\.yaw_base_speed"):
+        NavigationEnv(num_envs=2, **SMALL, **{"action.yaw_base_speed": 0.0})
+
+
 def test_teacher_local_map_is_the_esdf_on_the_heading_frame_grid():
     lm = {"local_map.enabled": True, "local_map.xs": [0.0, 2.0], "local_map.ys": [-1.0, 1.5],
           "local_map.zs": [0.0, 0.5], "local_map.clip": 3.0, "render_depth": False}  # fmt: skip

@@ -186,6 +186,32 @@ def expand_single_head(
     return out
 
 
+def expand_state_inputs(
+    state_dict: dict[str, torch.Tensor], model: DepthGRUModel, new_mean: float = 1.0, new_std: float = 0.25
+) -> dict[str, torch.Tensor]:
+    """Map a :class:`DepthGRUModel` state dict onto ``model`` whose state has more values at its end (a warm start).
+
+    The new state values (e.g. a ``memory`` group listed after ``state``) enter the GRU through zero weights, so the
+    new model acts exactly as the old one until training moves them. Their normaliser starts at ``new_mean`` and
+    ``new_std`` (the old values' statistics are kept; with the old sample count they then move slowly).
+    """
+    s_new = int(model.obs_dim)
+    key = "rnn.rnn.weight_ih_l0"
+    if key not in state_dict or "obs_normalizer._mean" not in state_dict:
+        raise ValueError("expand_state_inputs: the state dict is not a DepthGRUModel's with a state normaliser")
+    s_old = int(state_dict["obs_normalizer._mean"].shape[-1])
+    if not 0 < s_old < s_new:
+        raise ValueError(f"expand_state_inputs: the state dict's state has {s_old} values; the model's {s_new}")
+    out = dict(state_dict)
+    w = state_dict[key]  # (3 Hd, S_old + F)
+    out[key] = torch.cat([w[:, :s_old], w.new_zeros((w.shape[0], s_new - s_old)), w[:, s_old:]], dim=1)
+    extra = s_new - s_old
+    for name, value in (("_mean", new_mean), ("_var", new_std**2), ("_std", new_std)):
+        old = state_dict[f"obs_normalizer.{name}"]
+        out[f"obs_normalizer.{name}"] = torch.cat([old, old.new_full((*old.shape[:-1], extra), value)], dim=-1)
+    return out
+
+
 class DepthGRUModel(MLPModel):
     """Depth CNN + GRU + MLP actor for rsl-rl 5.x (paper, "Network Architecture").
 

@@ -211,6 +211,36 @@ class LocalMapConfig:
 
 
 @dataclass
+class SceneMemoryConfig:
+    """An onboard memory of the scene, built only from the policy's own depth frames and pose (observation ``memory``).
+
+    A frame is stored at most every ``interval`` control steps: for each sampled image column, the nearest sampled
+    pixel whose world point lies within ``band`` of the vehicle's height (one point per column, its horizontal
+    position kept). Each env keeps its last ``frames`` stored frames (0.01 s control steps: 30 x 5 = 1.5 s). Each
+    step they are read as ``bins`` equal sectors of bearing in the heading frame (sector
+    ``k`` covers ``[-180 + k * 360 / bins, -180 + (k + 1) * 360 / bins)`` deg, 0 = ahead, positive to the left): the
+    nearest remembered horizontal distance in each, divided by ``range`` and clipped to 1 (1: nothing within
+    ``range``). Unlike the camera it covers beside and behind the vehicle; unlike ``local_map`` it is not privileged:
+    it holds what the sensor showed, noise included, placed with the vehicle's pose (odometry without drift).
+    """
+
+    enabled: bool = False
+    """Compute the ``memory`` observation group (N, bins); list it in the actor's observation set to use it."""
+    bins: int = 16
+    """Bearing sectors around the vehicle."""
+    range: float = 5.0
+    """Distances are divided by this and clipped to 1 [m]."""
+    frames: int = 30
+    """Stored frames remembered per env."""
+    interval: int = 5
+    """Control steps between stored frames (at least)."""
+    band: float = 0.5
+    """Half-height of the slab around the vehicle whose points are kept [m]."""
+    pixel_stride: int = 4
+    """Every ``pixel_stride``-th row and column of the image is sampled."""
+
+
+@dataclass
 class NavConfig:
     """The whole task. See docs/task.md for the MDP in one page."""
 
@@ -247,6 +277,8 @@ class NavConfig:
     is all zeros, the critic's pooled depth is constant, and the step costs about half as much."""
     local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
     """Privileged local ESDF map for a teacher policy (``info["teacher"]``)."""
+    scene_memory: SceneMemoryConfig = field(default_factory=SceneMemoryConfig)
+    """Onboard memory of the scene for the policy (observation group ``memory``); off by default."""
 
     def validate(self, prefix: str = "") -> None:
         """Cross-field checks naming the key."""
@@ -291,3 +323,10 @@ class NavConfig:
         for k in ("xs", "ys", "zs"):
             require(len(getattr(lm, k)) >= 1, f"{prefix}local_map.{k}", "must hold at least one offset")
         require(lm.clip > 0, f"{prefix}local_map.clip", "must be > 0")
+        sm = self.scene_memory
+        require(sm.bins >= 1, f"{prefix}scene_memory.bins", f"must be >= 1, got {sm.bins}")
+        require(math.isfinite(sm.range) and sm.range > 0, f"{prefix}scene_memory.range", f"must be > 0, got {sm.range}")
+        require(sm.frames >= 1, f"{prefix}scene_memory.frames", f"must be >= 1, got {sm.frames}")
+        require(sm.interval >= 1, f"{prefix}scene_memory.interval", f"must be >= 1, got {sm.interval}")
+        require(math.isfinite(sm.band) and sm.band > 0, f"{prefix}scene_memory.band", f"must be > 0, got {sm.band}")
+        require(sm.pixel_stride >= 1, f"{prefix}scene_memory.pixel_stride", f"must be >= 1, got {sm.pixel_stride}")

@@ -17,6 +17,7 @@ from envs.fields import scene_field_stack
 from envs.fields.anchors import GoalAnchorFields
 from envs.navigation import rewards as R
 from envs.navigation.config import REWARD_TERMS, NavConfig
+from envs.navigation.memory import SceneMemory
 from envs.scenes import make_scene
 from envs.scenes.families import is_training_family
 from envs.vehicle.rotations import euler_zyx_to_rot, rot_to_quat
@@ -63,7 +64,8 @@ class NavigationEnv(VectorEnv):
     =====  ======================================  =================================================
 
     **Observation** (policy, noisy): ``{"depth": (N, 1, 60, 100) float32 in [0, 1] (inverse depth
-    min_range / z, 0 = invalid), "state": (N, 21) float32}`` laid out as :data:`STATE_LAYOUT`. The privileged
+    min_range / z, 0 = invalid), "state": (N, 21) float32}`` laid out as :data:`STATE_LAYOUT`, and with
+    ``scene_memory.enabled`` also ``"memory": (N, bins)`` (:class:`envs.navigation.memory.SceneMemory`). The privileged
     critic vector (noise-free state, geodesic distance, ESDF and gradient, world velocity, min-pooled clean depth)
     is ``info["critic"]`` (N, C); it is never part of the policy observation.
 
@@ -133,12 +135,15 @@ class NavigationEnv(VectorEnv):
         self.sim_time = 0.0
         # ---------------------------------------------------------------- spaces
         H, W = cfg.camera.height, cfg.camera.width
-        self.single_observation_space = gym.spaces.Dict(
-            {
-                "depth": gym.spaces.Box(0.0, 1.0, (1, H, W), np.float32),
-                "state": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
-            }
-        )
+        self.memory = SceneMemory(cfg.scene_memory, cfg.camera, n) if cfg.scene_memory.enabled else None
+        """The onboard scene memory (observation ``memory``), or None when ``scene_memory.enabled`` is false."""
+        spaces = {
+            "depth": gym.spaces.Box(0.0, 1.0, (1, H, W), np.float32),
+            "state": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
+        }
+        if self.memory is not None:
+            spaces["memory"] = gym.spaces.Box(0.0, 1.0, (self.memory.dim,), np.float32)
+        self.single_observation_space = gym.spaces.Dict(spaces)
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, n)
         self.action_space = batch_space(self.single_action_space, n)
@@ -407,9 +412,12 @@ class NavigationEnv(VectorEnv):
             ids = np.flatnonzero(due)
             if len(ids):
                 self.clean_depth_buf[ids] = self.camera.render(pos[ids], r_wb[ids], self.scene_id_buf[ids])
+            captured = self.noise.due()  # the envs whose sensor reports a new frame this step
             noisy = self.noise.apply(self.clean_depth_buf, self._rng)
             self.sensor_depth_buf = noisy  # metric depth as the sensor reports it (what the shield may use)
             depth = normalize_depth(noisy, cfg.camera)
+            if self.memory is not None:
+                self.memory.push(noisy, pos, r_wb, captured)
         else:
             self.sensor_depth_buf = self.clean_depth_buf  # never rendered: max range everywhere
             depth = self._zero_depth
@@ -440,6 +448,8 @@ class NavigationEnv(VectorEnv):
         if cfg.local_map.enabled:
             self._teacher = np.concatenate((clean_state, self._local_map(pos, r_wb)), axis=1).astype(np.float32)
         self._obs = {"depth": depth, "state": state.astype(np.float32)}
+        if self.memory is not None:
+            self._obs["memory"] = self.memory.observe(pos, r_wb)
         return self._obs
 
     def _local_map(self, pos: np.ndarray, r_wb: np.ndarray) -> np.ndarray:
@@ -537,6 +547,8 @@ class NavigationEnv(VectorEnv):
         self.ep_speed_buf[env_ids] = 0.0
         self.ep_min_esdf_buf[env_ids] = np.inf
         self.noise.reset(env_ids)
+        if self.memory is not None:
+            self.memory.reset(env_ids)
         # Potential at the start, so the first step's progress is measured from here.
         if cfg.reward.navigation == "euclidean":
             self.phi_prev_buf[env_ids] = dist

@@ -41,8 +41,11 @@ class PolicyInfo:
     train_speeds: tuple[float, float] | None
     """Target-speed range [lo, hi] the policy was trained for (from that config), if known."""
     train_env: dict | None = None
-    """The ``action``, ``camera`` and ``vehicle`` sections of the training env config (evaluation flies the policy
-    with these, so its actions mean what they meant in training), if found."""
+    """The ``action``, ``camera``, ``vehicle`` and ``scene_memory`` sections of the training env config (evaluation
+    flies the policy with these, so its actions and inputs mean what they meant in training), if found."""
+    state_groups: tuple[str, ...] = ("state",)
+    """The env's 1-D observation groups whose concatenation is the policy's state input, in order (from the
+    training config's actor or student set; ``("state",)`` when none is found)."""
 
 
 class LoadedPolicy:
@@ -59,6 +62,16 @@ class LoadedPolicy:
     def initial_state(self, n: int) -> np.ndarray:
         """Zero hidden state (L, n, Hd), float32."""
         return np.zeros((self.info.num_layers, n, self.info.hidden_size), dtype=np.float32)
+
+    def state_of(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The policy's state input (N, S) from an env observation: its :attr:`PolicyInfo.state_groups` in order."""
+        missing = [g for g in self.info.state_groups if g not in obs]
+        if missing:
+            raise EvalError(f"checkpoint {self.info.name!r} reads observation groups {missing} the env does not "
+                            f"give (it has {sorted(obs)}); enable them in its env config")  # fmt: skip
+        if len(self.info.state_groups) == 1:
+            return obs[self.info.state_groups[0]]
+        return np.concatenate([obs[g] for g in self.info.state_groups], axis=-1)
 
     def step(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One deterministic policy step for a batch (see the class docstring)."""
@@ -149,7 +162,7 @@ def _speeds_from_config(path: str | None) -> tuple[float, float] | None:
     return None
 
 
-POLICY_ENV_SECTIONS = ("action", "camera", "vehicle")
+POLICY_ENV_SECTIONS = ("action", "camera", "vehicle", "scene_memory")
 """Env config sections taken from a policy's training config when it is evaluated."""
 
 
@@ -165,6 +178,19 @@ def _env_from_config(path: str | None) -> dict | None:
         return None
     out = {k: env[k] for k in POLICY_ENV_SECTIONS if isinstance(env.get(k), dict)}
     return out or None
+
+
+def _state_groups_from_config(path: str | None) -> tuple[str, ...]:
+    """The 1-D groups of the actor's (PPO) or student's (distillation) observation set, ``depth`` left out."""
+    data = _read_policy_config(path, "its observation groups") if path is not None else None
+    runner = data.get("runner") if isinstance(data, dict) else None
+    groups = runner.get("obs_groups") if isinstance(runner, dict) else None
+    if isinstance(groups, dict):
+        key = "student" if runner.get("class_name") == "DistillationRunner" else "actor"
+        names = groups.get(key)
+        if isinstance(names, list) and names:
+            return tuple(str(g) for g in names if g != "depth")
+    return ("state",)
 
 
 def _dim(value: Any, what: str, path: str) -> int:
@@ -187,6 +213,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
     cfg_path = _find_train_config(file)
     speeds = _speeds_from_config(cfg_path)
     train_env = _env_from_config(cfg_path)
+    groups = _state_groups_from_config(cfg_path)
     if file.endswith(".onnx"):
         import onnxruntime as ort
 
@@ -212,7 +239,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
         names = {"obs": by_rank[2].name, "depth": by_rank[4].name, "h_in": by_rank[3].name,
                  "actions": outs[2].name, "h_out": outs[3].name}  # fmt: skip
         info = PolicyInfo(name, file, "onnx", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
-                          cfg_path, speeds, train_env)  # fmt: skip
+                          cfg_path, speeds, train_env, groups)  # fmt: skip
         return LoadedPolicy(info, sess, names)
     import torch
 
@@ -227,7 +254,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
         raise EvalError(f"checkpoint {name!r}: {file!r} lacks obs_dim/depth_shape/num_layers/hidden_size") from None
     mod.eval()
     info = PolicyInfo(name, file, "torchscript", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
-                      cfg_path, speeds, train_env)  # fmt: skip
+                      cfg_path, speeds, train_env, groups)  # fmt: skip
     return LoadedPolicy(info, mod)
 
 

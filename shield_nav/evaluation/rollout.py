@@ -193,7 +193,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         live = end_step < 0
         if policy is not None or teacher is not None:
             if policy is not None:
-                act, h = policy.step(obs["state"], obs["depth"], h)
+                act, h = policy.step(policy.state_of(obs), obs["depth"], h)
             else:
                 act = teacher.step(priv["teacher"])  # type: ignore[union-attr]
             cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None else None

@@ -169,9 +169,11 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     """Load a checkpoint's student weights into the runner's student; return the checkpoint's ``infos``.
 
     A single-head student initialises a multi-hypothesis one: every candidate starts as its head
-    (:func:`shield_nav.models.expand_single_head`), so training starts from the single-head policy.
+    (:func:`shield_nav.models.expand_single_head`), so training starts from the single-head policy. A student whose
+    state has more values (a new observation group after ``state``, e.g. ``memory``) starts from one with fewer
+    through zero weights on the new values (:func:`shield_nav.models.expand_state_inputs`).
     """
-    from shield_nav.models import expand_single_head
+    from shield_nav.models import expand_single_head, expand_state_inputs
 
     student = runner.alg._raw_student
     ckpt = torch.load(path, map_location=device, weights_only=False)
@@ -182,6 +184,11 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     if getattr(student, "num_hypotheses", 1) > 1 and single:
         weights = expand_single_head(weights, student)
         print(f"[train] single-head student expanded to {student.num_hypotheses} hypotheses", flush=True)
+    mean = weights.get("obs_normalizer._mean")
+    if mean is not None and hasattr(student, "obs_dim") and mean.shape[-1] < student.obs_dim:
+        weights = expand_state_inputs(weights, student)
+        print(f"[train] student state widened from {mean.shape[-1]} to {student.obs_dim} values "
+              f"(new inputs start at zero weight)", flush=True)  # fmt: skip
     student.load_state_dict(weights)
     return ckpt.get("infos") or {}
 

@@ -630,3 +630,42 @@ def test_scene_seed_set_twice_must_agree_and_an_error_names_both_keys():
     # another draw of the same generator: set scenes.seed itself
     other = E.load_eval_config(path, ["scenes.seed=1160000"])
     assert E.nav_config(other, "benchmark", 3, 9.0, 1).scenes.seed == 1160000
+
+
+def test_policy_with_a_memory_input_reads_its_groups_and_the_env_section_from_its_training_config(tmp_path):
+    """A policy trained with ``memory`` after ``state`` is flown with the scene memory on and both groups joined."""
+    torch = pytest.importorskip("torch")
+    from tensordict import TensorDict
+
+    from shield_nav.models import DepthGRUModel, export_policy
+
+    torch.manual_seed(0)
+    obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21), "memory": torch.rand(2, 8)}, [2])
+    groups = {"actor": ["depth", "state", "memory"], "critic": ["critic"], "student": ["depth", "state"]}
+    model = DepthGRUModel(obs, groups, "actor", 4, rnn_hidden_dim=16,
+                          distribution_cfg={"class_name": "GaussianDistribution", "init_std": 0.5})  # fmt: skip
+    export_policy(model, str(tmp_path / "ckpt" / "exported"))
+    (tmp_path / "ckpt" / "params").mkdir()
+    train_cfg = {"env": {"episode": {"target_speeds": [3.0]}, "scene_memory": {"enabled": True, "bins": 8}},
+                 "runner": {"class_name": "OnPolicyRunner", "obs_groups": groups}}  # fmt: skip
+    (tmp_path / "ckpt" / "params" / "config.yaml").write_text(yaml.safe_dump(train_cfg))
+    pol = E.load_policy(tmp_path / "ckpt", "mem")
+    assert pol.info.obs_dim == 29 and pol.info.state_groups == ("state", "memory")
+    assert pol.info.train_env == {"scene_memory": {"enabled": True, "bins": 8}}
+    a, b = np.arange(6.0).reshape(2, 3), np.full((2, 2), 9.0)
+    np.testing.assert_array_equal(pol.state_of({"state": a, "memory": b, "depth": None}), np.hstack((a, b)))
+    with pytest.raises(E.EvalError, match=r"\['memory'\]"):
+        pol.state_of({"state": a})
+    # A distillation run's policy reads its student set.
+    train_cfg["runner"]["class_name"] = "DistillationRunner"
+    (tmp_path / "ckpt" / "params" / "config.yaml").write_text(yaml.safe_dump(train_cfg))
+    assert E.load_policy(tmp_path / "ckpt", "mem").info.state_groups == ("state",)
+    # Through the harness (PPO layout again): the env gets the memory section and the policy flies a short trial.
+    train_cfg["runner"]["class_name"] = "OnPolicyRunner"
+    (tmp_path / "ckpt" / "params" / "config.yaml").write_text(yaml.safe_dump(train_cfg))
+    cfg = tiny_cfg("configurations=[mem]", "rows.mem.label=Mem", "rows.mem.policy=mem",
+                   f"checkpoints.mem={tmp_path / 'ckpt'}", "trials_per_scene=1", "speeds=[3.0]",
+                   "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
+    E.evaluate(cfg, str(tmp_path / "out"), progress=False)
+    (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
+    assert trial["steps"] > 0

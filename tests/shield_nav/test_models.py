@@ -12,7 +12,14 @@ from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
-from shield_nav.models import DepthEncoder, DepthGRUModel, HypothesisSelect, expand_single_head, export_policy
+from shield_nav.models import (
+    DepthEncoder,
+    DepthGRUModel,
+    HypothesisSelect,
+    expand_single_head,
+    expand_state_inputs,
+    export_policy,
+)
 
 S, C_DIM, A = 21, 40, 4  # state, critic and action sizes
 GROUPS = {"actor": ["depth", "state"], "critic": ["critic"]}
@@ -321,3 +328,29 @@ def test_encoder_runs_channels_last_with_the_values_of_a_plain_nchw_stack():
     assert other.conv[2].weight.is_contiguous(memory_format=torch.channels_last)
     with torch.no_grad():
         assert torch.allclose(other(x), got, atol=1e-6)
+
+
+def test_expand_state_inputs_adds_inputs_that_start_without_effect():
+    """A student with a ``memory`` group after ``state`` starts as the student without it (zero weights on it)."""
+    old, gen = make_actor(n=3, seed=6)
+    torch.manual_seed(7)
+    obs = make_obs(3, gen)
+    obs["memory"] = torch.rand(3, 5, generator=gen)
+    groups = {"actor": ["depth", "state", "memory"], "critic": ["critic"]}
+    new = DepthGRUModel(obs, groups, "actor", A, distribution_cfg=GAUSS, **SMALL)
+    assert new.obs_dim == S + 5
+    new.load_state_dict(expand_state_inputs(old.state_dict(), new))
+    old.eval()
+    new.eval()
+    with torch.no_grad():
+        for _ in range(3):  # the GRU state follows too
+            step = make_obs(3, gen)
+            step["memory"] = torch.rand(3, 5, generator=gen) * 10.0  # any memory: no effect yet
+            torch.testing.assert_close(new(step), old(step))
+    sd = new.state_dict()
+    assert torch.equal(sd["rnn.rnn.weight_ih_l0"][:, S : S + 5], torch.zeros(3 * SMALL["rnn_hidden_dim"], 5))
+    torch.testing.assert_close(sd["obs_normalizer._mean"][0, S:], torch.full((5,), 1.0))
+    torch.testing.assert_close(sd["obs_normalizer._std"][0, S:], torch.full((5,), 0.25))
+    torch.testing.assert_close(sd["obs_normalizer._mean"][0, :S], old.state_dict()["obs_normalizer._mean"][0])
+    with pytest.raises(ValueError, match="state has 26 values; the model's 26"):
+        expand_state_inputs(new.state_dict(), new)

@@ -21,12 +21,18 @@ STAGES = {
     "vehicle_step": ("vehicles.py", "step"),
     "fields": ("lookup.py", "query"),
     "resets": ("env.py", "_reset_idx"),
+    "scene_memory": ("memory.py", "push"),  # push + observe when env.scene_memory.enabled
+    "scene_memory_read": ("memory.py", "observe"),
 }
 
 
-def measure(num: int, seconds: float) -> dict:
-    """Step ``num`` envs for ``seconds`` with uniform random actions; profile a second window for the split."""
-    env = NavigationEnv(num_envs=num, overrides={"randomization.depth_noise.frame_rate_hz": 0.0})
+def measure(num: int, seconds: float, overrides: list[str] | None = None) -> dict:
+    """Step ``num`` envs for ``seconds`` with uniform random actions; profile a second window for the split.
+
+    ``overrides`` are env config ``KEY=VALUE`` strings (e.g. ``scene_memory.enabled=true``), applied last.
+    """
+    extra = dict(o.split("=", 1) for o in overrides or [])
+    env = NavigationEnv(num_envs=num, overrides={"randomization.depth_noise.frame_rate_hz": 0.0, **extra})
     env.reset(seed=0)
     rng = np.random.default_rng(0)
 
@@ -71,16 +77,22 @@ def main(argv: list[str]) -> dict:
     p = parser("env", __doc__.splitlines()[0])
     p.add_argument("--num-envs", type=int, nargs="+", default=[64, 256])
     p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="env config overrides, e.g. scene_memory.enabled=true")  # fmt: skip
     args = p.parse_args(argv)
+    bad = [o for o in args.set if "=" not in o]
+    if bad:
+        p.error(f"--set takes KEY=VALUE, got {bad}")
     runs = []
     for n in args.num_envs:
-        r = measure(n, args.seconds)
+        r = measure(n, args.seconds, args.set)
         runs.append(r)
         if not args.json:
             print(r)
     last = runs[-1]
     result = {
         "benchmark": "env",
+        "overrides": args.set,
         "num_envs": last["num_envs"],
         "env_steps_per_s": last["env_steps_per_s"],
         "depth_share": last["depth_share"],

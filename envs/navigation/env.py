@@ -412,7 +412,7 @@ class NavigationEnv(VectorEnv):
             ids = np.flatnonzero(due)
             if len(ids):
                 self.clean_depth_buf[ids] = self.camera.render(pos[ids], r_wb[ids], self.scene_id_buf[ids])
-            captured = self.noise.due()  # the envs whose sensor reports a new frame this step
+            captured = self.noise.due() if self.memory is not None else None  # new frames this step
             noisy = self.noise.apply(self.clean_depth_buf, self._rng)
             self.sensor_depth_buf = noisy  # metric depth as the sensor reports it (what the shield may use)
             depth = normalize_depth(noisy, cfg.camera)

@@ -21,8 +21,8 @@ STAGES = {
     "vehicle_step": ("vehicles.py", "step"),
     "fields": ("lookup.py", "query"),
     "resets": ("env.py", "_reset_idx"),
-    "scene_memory": ("memory.py", "push"),  # push + observe when env.scene_memory.enabled
-    "scene_memory_read": ("memory.py", "observe"),
+    "scene_memory": ("memory.py", "push"),  # storing frames (when env.scene_memory.enabled)
+    "scene_memory_read": ("memory.py", "observe"),  # the sector read-out
 }
 
 

@@ -194,8 +194,19 @@ class ShieldConfig:
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
     lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Ceiling row")."""
 
+    hypotheses: str = "top"
+    """Which of a multi-hypothesis policy's candidate commands the shield filters. ``"top"`` (default): the policy's
+    own choice, the best-scored candidate, as every policy deploys without a shield. ``"first_clean"``: when the
+    best-scored candidate breaks a row (any point's, with the lagged rows and the altitude rows), the next
+    candidate in score order that breaks none is flown instead, uncorrected; if none is clean, the best-scored one
+    is corrected by the QP as with ``"top"``. ``"safest"``: the same, except that when none is clean the candidate
+    with the largest smallest row margin is corrected. The evaluation asks the policy for its candidates only when
+    this is not ``"top"`` (docs/shield.md, "Choosing among the policy's hypotheses")."""
+
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
+        require(self.hypotheses in HYPOTHESIS_MODES, f"{prefix}hypotheses",
+                f"must be one of {list(HYPOTHESIS_MODES)}, got {self.hypotheses!r}")  # fmt: skip
         require(self.alpha0 > 0, f"{prefix}alpha0", f"must be > 0, got {self.alpha0}")
         require(self.alpha1 > 0, f"{prefix}alpha1", f"must be > 0, got {self.alpha1}")
         require(self.r_safe > 0, f"{prefix}r_safe", f"must be > 0, got {self.r_safe}")
@@ -254,6 +265,10 @@ class ShieldConfig:
         )
 
 
+HYPOTHESIS_MODES = ("top", "first_clean", "safest")
+"""Values of :attr:`ShieldConfig.hypotheses`."""
+
+
 # --------------------------------------------------------------------------------------------- the shield
 @dataclass
 class ShieldOutput:
@@ -277,6 +292,8 @@ class ShieldOutput:
     """(N,) float: time spent in the QP solver calls [us] (0 when inactive)."""
     total_us: np.ndarray
     """(N,) float: whole per-vehicle shield time [us]: point cloud, selection, QP, conversion back."""
+    choice: np.ndarray | None = None
+    """(N,) int: which command was filtered, 0 the given ``command``, j >= 1 ``alternatives[:, j - 1]``."""
 
 
 class HOCBFShield:
@@ -536,7 +553,8 @@ class HOCBFShield:
         self._memory_head[vid] = (head + 1) % self.cfg.memory_steps
 
     # ------------------------------------------------------------------------------ batched
-    def filter_env(self, env, command: np.ndarray, ids: np.ndarray | None = None) -> ShieldOutput:  # noqa: ANN001
+    def filter_env(self, env, command: np.ndarray, ids: np.ndarray | None = None,  # noqa: ANN001
+                   alternatives: np.ndarray | None = None) -> ShieldOutput:  # fmt: skip
         """Filter the commands (len(ids), 4) of a ``NavigationEnv``'s vehicles ``ids`` (all if None) on its state.
 
         The state is the sensor's depth image with the body attitude, the env-local position and the velocity. The
@@ -544,7 +562,7 @@ class HOCBFShield:
         """
         sel = slice(None) if ids is None else ids
         return self.filter(command, env.local_pos[sel], env.vehicles.vel_w[sel], depth=env.sensor_depth_buf[sel],
-                           R_wb=env.vehicles.R_wb[sel], ids=ids)  # fmt: skip
+                           R_wb=env.vehicles.R_wb[sel], ids=ids, alternatives=alternatives)  # fmt: skip
 
     def filter(
         self,
@@ -555,13 +573,16 @@ class HOCBFShield:
         R_wb: np.ndarray | None = None,  # noqa: N803
         points_w: list[np.ndarray] | None = None,
         ids: np.ndarray | None = None,
+        alternatives: np.ndarray | None = None,
     ) -> ShieldOutput:
         """Filter N commands (N, 4). Obstacles come from depth images (N, 1, H, W) with body poses, or point lists.
 
         Vehicle state: ``pos_w`` (N, 3), ``vel_w`` (N, 3). For depth input, ``R_wb`` (N, 3, 3) is the body
         attitude when the image was taken (the camera mount comes from the camera config). ``ids`` (N,) names
         the vehicles for the point memory (``memory_steps`` > 0) and the previous acceleration (``lag_s`` > 0) when
-        the batch is a changing subset; default 0..N-1.
+        the batch is a changing subset; default 0..N-1. ``alternatives`` (N, J, 4): a multi-hypothesis policy's
+        other candidates in its score order, used as :attr:`ShieldConfig.hypotheses` says (ignored with ``"top"``);
+        the output's ``choice`` says which command each vehicle flew.
         """
         cmd = np.atleast_2d(np.asarray(command, dtype=np.float64))
         num = len(cmd)
@@ -570,6 +591,15 @@ class HOCBFShield:
         if not np.all(np.isfinite(cmd)):
             bad = np.flatnonzero(~np.isfinite(cmd).all(axis=1)).tolist()
             raise ValueError(f"non-finite command for vehicle index(es) {bad}")
+        alts = None
+        if alternatives is not None and self.cfg.hypotheses != "top":
+            alts = np.asarray(alternatives, dtype=np.float64)
+            if alts.ndim != 3 or alts.shape[0] != num or alts.shape[2] != 4:
+                raise ValueError(f"alternatives must be (N, J, 4) with N = {num}, got shape {alts.shape}")
+            if not np.all(np.isfinite(alts)):
+                bad = np.flatnonzero(~np.isfinite(alts).all(axis=(1, 2))).tolist()
+                raise ValueError(f"non-finite alternative command for vehicle index(es) {bad}")
+        choice = np.zeros(num, dtype=np.int64)
         out_cmd = cmd.copy()
         g = self.cfg.gravity
         a_raw = np.empty((num, 3))
@@ -607,6 +637,16 @@ class HOCBFShield:
                 a0 = _ZERO3 if v_prev is None else (v_i - v_prev) / self.cfg.control_dt
                 self._prev_vel[vid] = np.array(v_i, dtype=np.float64)
                 lagged = (p_i + lag * v_i + 0.5 * lag * lag * a0, v_i + lag * a0)
+            if alts is not None:
+                k = self._pick_hypothesis(cmd[i], alts[i], pts, p_i, v_i, lagged)
+                if k > 0:
+                    choice[i] = k
+                    out_cmd[i] = alts[i, k - 1]
+                    _accel_from_command_1(alts[i, k - 1, 0], alts[i, k - 1, 1], alts[i, k - 1, 2], alts[i, k - 1, 3],
+                                          g, self._a_buf)  # fmt: skip
+                    a_raw[i] = self._a_buf
+                else:  # the screening overwrote the buffer: back to the policy's own command
+                    _accel_from_command_1(cmd[i, 0], cmd[i, 1], cmd[i, 2], cmd[i, 3], g, self._a_buf)
             r_sel, a_mat, b_vec = self.constraints(pts, p_i, v_i, self._a_buf, lagged)
             if self.cfg.memory_steps > 0:
                 self._remember(vid, self._o_buf[: len(r_sel)])
@@ -633,9 +673,38 @@ class HOCBFShield:
                     if status[i] != STATUS_SOLVED:
                         break
                 a_safe[i] = a_star
-                out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], cmd[i, 3], g)
+                out_cmd[i, :3] = _command_from_accel_1(a_star[0], a_star[1], a_star[2], out_cmd[i, 3], g)
                 active[i] = True
             else:
                 a_safe[i] = a_raw[i]
             total_us[i] = 1e6 * (time.perf_counter() - t0)
-        return ShieldOutput(out_cmd, a_raw, a_safe, active, status, ncon, slack, solve_us, total_us)
+        return ShieldOutput(out_cmd, a_raw, a_safe, active, status, ncon, slack, solve_us, total_us, choice)
+
+    def _pick_hypothesis(
+        self,
+        command: np.ndarray,
+        alternatives: np.ndarray,
+        pts: np.ndarray,
+        p: np.ndarray,
+        v: np.ndarray,
+        lagged: tuple[np.ndarray, np.ndarray] | None,
+    ) -> int:
+        """Index into [command, *alternatives] that :attr:`ShieldConfig.hypotheses` flies (0: ``command``).
+
+        A candidate is clean when its acceleration keeps every point's row (at the state and, with ``lag_s``, one
+        lag ahead) and the altitude rows. Uses ``self._a_buf`` as scratch.
+        """
+        g = self.cfg.gravity
+        plane_mat, plane_vec = self._plane_rows(p[2], v[2])
+        best_k, best_m = 0, -math.inf
+        for k in range(len(alternatives) + 1):
+            c = command if k == 0 else alternatives[k - 1]
+            _accel_from_command_1(c[0], c[1], c[2], c[3], g, self._a_buf)
+            m = self.min_margin(pts, p, v, self._a_buf, lagged) if len(pts) else math.inf
+            if len(plane_vec):
+                m = min(m, float(np.min(plane_mat @ self._a_buf - plane_vec)))
+            if m >= 0.0:
+                return k
+            if m > best_m:
+                best_k, best_m = k, m
+        return best_k if self.cfg.hypotheses == "safest" else 0

@@ -101,6 +101,8 @@ def aggregate(trials: list[dict]) -> dict[str, Any]:
                 "qp_us_mean": sum(s["solve_us_sum"] for s in sh) / active if active else 0.0,
                 "qp_us_max": max(s["solve_us_max"] for s in sh),
                 "shield_us_mean": sum(s["total_us_sum"] for s in sh) / steps if steps else 0.0,
+                # Steps flown on another of the policy's candidates (shield.hypotheses; 0 for older trial files).
+                "switched": sum(s.get("switched_steps", 0) for s in sh) / steps if steps else 0.0,
             }
         )
     return out

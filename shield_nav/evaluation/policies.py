@@ -89,6 +89,42 @@ class LoadedPolicy:
             act, h_out = self._runner(torch.from_numpy(state), torch.from_numpy(depth), torch.from_numpy(h))
         return act.numpy().astype(np.float64), h_out.numpy().astype(np.float32)
 
+    def num_hypotheses(self) -> int:
+        """``K``, the candidate actions the actor scores (1 for a single-head actor, and for an ONNX export)."""
+        if self.info.kind == "onnx":
+            return 1
+        select = dict(self._runner.mlp.named_children()).get("1")  # HypothesisSelect after the MLP core, if any
+        return int(select.num_hypotheses) if select is not None and hasattr(select, "num_hypotheses") else 1
+
+    def step_hypotheses(
+        self, state: np.ndarray, depth: np.ndarray, h: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One step that also returns the actor's other candidates: ``(chosen (N, A), others (N, K - 1, A), h)``.
+
+        ``chosen`` is :meth:`step`'s action (the best-scored candidate); ``others`` are the remaining candidates in
+        descending score order. TorchScript exports of multi-hypothesis actors only (an ONNX export holds the
+        selection inside its graph).
+        """
+        k = self.num_hypotheses()
+        if k < 2:
+            why = "an ONNX export gives only its chosen action" if self.info.kind == "onnx" else "it has one head"
+            raise EvalError(f"checkpoint {self.info.name!r} ({self.info.path}): the shield's 'hypotheses' option "
+                            f"needs a multi-hypothesis actor's TorchScript export (policy.pt); {why}")  # fmt: skip
+        import torch
+
+        m = self._runner
+        with torch.no_grad():
+            obs = torch.from_numpy(np.ascontiguousarray(state, dtype=np.float32))
+            img = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
+            _, h_out = m(obs, img, torch.from_numpy(np.ascontiguousarray(h, dtype=np.float32)))
+            # One step of a GRU: its output is the last layer's new hidden state, which feeds the MLP head.
+            raw = getattr(m.mlp, "0")(h_out[-1])
+        a = (raw.shape[-1] - k) // k
+        cands = m.deterministic_output(raw[:, : k * a].reshape(-1, k, a)).numpy().astype(np.float64)
+        order = np.argsort(-raw[:, k * a :].numpy(), axis=1, kind="stable")  # ties: the first, as HypothesisSelect
+        ranked = np.take_along_axis(cands, order[:, :, None], axis=1)
+        return ranked[:, 0], ranked[:, 1:], h_out.numpy().astype(np.float32)
+
 
 def _sha256(path: str) -> str:
     h = hashlib.sha256()

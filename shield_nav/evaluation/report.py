@@ -139,7 +139,7 @@ def csv_table(prep: Prepared, summary: dict) -> str:
     """One CSV line per (configuration, speed) cell with every metric."""
     keys = ["n", "successes", "success_rate", "sr_lo", "sr_hi", "collision_rate", "timeout_rate", "oob_rate", "vel",
             "clearance_mean", "clearance_min", "path_ratio", "over_top", "shield_active", "corr_mean", "corr_max",
-            "relaxed", "qp_us_mean", "qp_us_max", "shield_us_mean"]  # fmt: skip
+            "relaxed", "qp_us_mean", "qp_us_max", "shield_us_mean", "switched"]  # fmt: skip
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["configuration", "label", "speed", *keys])

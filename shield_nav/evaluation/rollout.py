@@ -172,6 +172,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
     shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
+    pick_hypotheses = shield is not None and policy is not None and shield.cfg.hypotheses != "top"
     ids = np.zeros(n, dtype=np.int64)
     pos0 = env.local_pos.copy()
     phi_start = env.field_stack.geodesic(ids, pos0)
@@ -184,7 +185,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     outcome = [""] * n
     sh = {"steps": np.zeros(n, int), "active_steps": np.zeros(n, int), "corr_sum": np.zeros(n),
           "corr_max": np.zeros(n), "relaxed_steps": np.zeros(n, int), "solve_us_sum": np.zeros(n),
-          "solve_us_max": np.zeros(n), "total_us_sum": np.zeros(n)}  # fmt: skip
+          "solve_us_max": np.zeros(n), "total_us_sum": np.zeros(n), "switched_steps": np.zeros(n, int)}  # fmt: skip
     t = 0
     zeros = np.zeros((n, 4))
     if on_step is not None:
@@ -192,7 +193,12 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     while (end_step < 0).any():
         live = end_step < 0
         if policy is not None or teacher is not None:
-            if policy is not None:
+            alt_act = alt_cmd = None
+            if policy is not None and pick_hypotheses:
+                act, alt_act, h = policy.step_hypotheses(policy.state_of(obs), obs["depth"], h)
+                alt_cmd = np.stack([env.action_to_command(np.clip(alt_act[:, j], -1.0, 1.0))
+                                    for j in range(alt_act.shape[1])], axis=1)  # fmt: skip
+            elif policy is not None:
                 act, h = policy.step(policy.state_of(obs), obs["depth"], h)
             else:
                 act = teacher.step(priv["teacher"])  # type: ignore[union-attr]
@@ -202,8 +208,13 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         step_active = np.zeros(n, dtype=bool)
         if shield is not None:
             li = np.flatnonzero(live)
-            out = shield.filter_env(env, cmd[li], li)
+            out = shield.filter_env(env, cmd[li], li, None if alt_cmd is None else alt_cmd[li])
             cmd[li] = out.command
+            if alt_act is not None:  # the env records the action flown (the next state's last action)
+                switched = out.choice > 0
+                act = act.copy()
+                act[li[switched]] = alt_act[li[switched], out.choice[switched] - 1]
+                sh["switched_steps"][li] += switched
             step_active[li] = out.active
             corr = np.linalg.norm(out.accel_safe - out.accel_raw, axis=1)
             sh["steps"][li] += 1

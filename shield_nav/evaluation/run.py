@@ -28,6 +28,7 @@ from shield_nav.evaluation.config import (
     EvalConfig,
     EvalError,
     resolve_rows,
+    row_shield_config,
 )
 from shield_nav.evaluation.metrics import aggregate
 from shield_nav.evaluation.policies import PolicyInfo, check_layout, load_policy, load_teacher
@@ -68,6 +69,10 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
         try:
             loader = load_teacher if needed[pname] == "teacher" else load_policy
             pol = loader(cfg.checkpoints[pname], pname)
+            choosing = [rn for rn, r in rows.items() if r.policy == pname and r.controller == "policy" and r.shield
+                        and row_shield_config(cfg.shield, r, rn).hypotheses != "top"]  # fmt: skip
+            if choosing:
+                pol = _hypotheses_policy(pol, cfg.checkpoints[pname], pname, choosing)
         except EvalError as err:
             if cfg.missing_checkpoints == "skip" and pname not in explicit_checkpoints and \
                     not os.path.exists(cfg.checkpoints[pname]):  # fmt: skip
@@ -107,6 +112,24 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
     for msg in flags.values():
         warnings.warn(msg, stacklevel=2)
     return Prepared(cfg, rows, policies, missing, notes, flags)
+
+
+def _hypotheses_policy(pol: Any, path: str, name: str, rows: list[str]) -> Any:
+    """The TorchScript export of ``pol`` when rows fly it behind a shield that chooses among its hypotheses.
+
+    An ONNX export holds the choice inside its graph, so a checkpoint folder is read through its ``policy.pt``
+    instead; a policy without candidates to choose from is an error naming the option, before any flight.
+    """
+    if pol.info.kind == "onnx" and os.path.isdir(path):
+        for rel in ("policy.pt", "exported/policy.pt"):
+            if os.path.isfile(os.path.join(path, rel)):
+                pol = load_policy(os.path.join(path, rel), name)
+                break
+    if pol.num_hypotheses() < 2:
+        what = "an ONNX export (give its policy.pt)" if pol.info.kind == "onnx" else "a single-head actor"
+        raise EvalError(f"rows {rows} fly checkpoint {name!r} behind shield.hypotheses other than 'top', which needs "
+                        f"a multi-hypothesis actor's TorchScript export; {pol.info.path} is {what}")  # fmt: skip
+    return pol
 
 
 def plan_units(prep: Prepared) -> list[UnitSpec]:

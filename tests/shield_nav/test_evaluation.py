@@ -109,6 +109,10 @@ def test_aggregate_hand_made():
     assert c["corr_max"] == 4.0
     assert c["relaxed"] == pytest.approx(4 / 300)
     assert c["qp_us_mean"] == pytest.approx(3500.0 / 50) and c["qp_us_max"] == 300.0
+    assert c["switched"] == 0.0  # trial files without the hypotheses option's count
+    trials[0]["shield"]["switched_steps"] = 12
+    assert E.aggregate(trials)["switched"] == pytest.approx(12 / 300)
+    del trials[0]["shield"]["switched_steps"]
     assert (c["sr_lo"], c["sr_hi"]) == pytest.approx(E.wilson_interval(2, 4))
     assert math.isnan(c["over_top"])  # trial files from before the metric: unknown, not 0
     # Over the top counts successes only: one of the two successes flew over; the collision's flight does not count.
@@ -669,3 +673,56 @@ def test_policy_with_a_memory_input_reads_its_groups_and_the_env_section_from_it
     E.evaluate(cfg, str(tmp_path / "out"), progress=False)
     (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
     assert trial["steps"] > 0
+
+
+def test_multi_hypothesis_policy_gives_its_candidates_in_score_order_and_flies_behind_the_choosing_shield(tmp_path):
+    """``step_hypotheses`` against the eager model's own candidates and scores; the harness flies the option."""
+    torch = pytest.importorskip("torch")
+    from tensordict import TensorDict
+
+    from shield_nav.models import DepthGRUModel, export_policy
+
+    torch.manual_seed(0)
+    obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21)}, [2])
+    model = DepthGRUModel(obs, {"actor": ["depth", "state"]}, "actor", 4, rnn_hidden_dim=16, num_hypotheses=3,
+                          distribution_cfg={"class_name": "GaussianDistribution", "init_std": 0.5})  # fmt: skip
+    with torch.no_grad():  # spread the scores so the order is not decided by rounding
+        model.mlp[0][-1].bias[-3:] = torch.tensor([0.0, 2.0, 1.0])
+    paths = export_policy(model, str(tmp_path / "ckpt" / "exported"))
+    jit = E.load_policy(paths["jit"], "mh")
+    assert jit.num_hypotheses() == 3
+    rng = np.random.default_rng(1)
+    state, depth = rng.normal(size=(5, 21)).astype(np.float32), rng.uniform(size=(5, 1, 60, 100)).astype(np.float32)
+    h = rng.normal(size=(1, 5, 16)).astype(np.float32)
+    chosen, others, h1 = jit.step_hypotheses(state, depth, h)
+    act, h2 = jit.step(state, depth, h)
+    np.testing.assert_array_equal(chosen, act)
+    np.testing.assert_array_equal(h1, h2)
+    # Independently: the eager export's GRU output through the MLP core, candidates sorted by descending score.
+    exp = model.as_onnx()
+    with torch.no_grad():
+        x = torch.cat([exp.obs_normalizer(torch.from_numpy(state)), exp.encoder(torch.from_numpy(depth))], dim=-1)
+        y, _ = exp.gru(x.unsqueeze(0), torch.from_numpy(h))
+        hyps, scores = exp.mlp[1].split(exp.mlp[0](y.squeeze(0)))
+    order = np.argsort(-scores.numpy(), axis=1)
+    ranked = np.take_along_axis(hyps.numpy(), order[:, :, None], axis=1)
+    assert others.shape == (5, 2, 4)
+    np.testing.assert_allclose(chosen, ranked[:, 0], atol=1e-6)
+    np.testing.assert_allclose(others, ranked[:, 1:], atol=1e-6)
+    # The ONNX export holds the selection inside its graph: the option says what it needs, naming it.
+    with pytest.raises(E.EvalError, match="'hypotheses' option needs a multi-hypothesis actor's TorchScript"):
+        E.load_policy(paths["onnx"], "mh").step_hypotheses(state, depth, h)
+    # Through the harness: the Full row behind the choosing shield records how often it flew another candidate. The
+    # checkpoint folder is read through its TorchScript export; a single-head actor is refused before any flight.
+    single = export_fresh_policy(str(tmp_path / "single"))
+    for bad in (single["jit"], str(tmp_path / "single")):
+        cfg = tiny_cfg("configurations=[full]", f"checkpoints.full={bad}", "shield.hypotheses=first_clean")
+        with pytest.raises(E.EvalError, match="shield.hypotheses other than 'top'"):
+            E.evaluate(cfg, str(tmp_path / "refused"), progress=False)
+    cfg = tiny_cfg("configurations=[full]", f"checkpoints.full={tmp_path / 'ckpt'}", "trials_per_scene=1", "speeds=[3]",
+                   "shield.hypotheses=first_clean", "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
+    E.evaluate(cfg, str(tmp_path / "out"), progress=False)
+    man = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert man["checkpoints"]["full"]["path"].endswith("policy.pt")
+    (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
+    assert trial["steps"] > 0 and 0 <= trial["shield"]["switched_steps"] <= trial["steps"]

@@ -974,3 +974,77 @@ def test_bench_lockstep_replay_filters_each_shield_as_alone():
         np.testing.assert_array_equal(both[name][2], active)
     assert both["default"][2].any() and both["paper"][2].any()
     assert not np.array_equal(both["default"][2], both["paper"][2])
+
+
+# ---------------------------------------------------------------------------- choosing among the policy's hypotheses
+HYP = {"barrier": "distance", "alpha0": 1.0, "alpha1": 2.0, "lag_s": 0.0, "r_safe": 0.5, "min_altitude": 0.0,
+       "memory_steps": 0}  # fmt: skip
+"""Gains small enough that a point 1.5 m above the vehicle constrains ordinary vertical accelerations."""
+
+
+def _climb(a_z, yaw=0.0):
+    """A level command whose acceleration is (0, 0, a_z): f_n = g + a_z, no tilt."""
+    return np.array([G + a_z, 0.0, 0.0, yaw])
+
+
+def test_hypotheses_first_clean_flies_the_first_candidate_that_breaks_no_row():
+    # Vehicle at rest at z = 1.5, one point 1.5 m above it: r = p - o = (0, 0, -1.5), B = 2.25 - 0.25 = 2, Bdot = 0,
+    # so the row is 2 r.a + 2|v|^2 + a1 Bdot + a0 B = -3 a_z + 2 >= 0, i.e. a_z <= 2/3.
+    # Candidates a_z = 2 (margin -4), 1 (-1), 0.5 (+0.5), 0 (+2): the first clean one is a_z = 0.5.
+    pos, vel, pts = np.array([[0.0, 0.0, 1.5]]), np.zeros((1, 3)), [np.array([[0.0, 0.0, 3.0]])]
+    cmd = _climb(2.0)[None]
+    alts = np.array([[_climb(1.0), _climb(0.5), _climb(0.0)]])
+    out = HOCBFShield(ShieldConfig(**HYP, hypotheses="first_clean")).filter(cmd, pos, vel, points_w=pts,
+                                                                          alternatives=alts)  # fmt: skip
+    assert out.choice[0] == 2 and not out.active[0]
+    assert np.array_equal(out.command[0], alts[0, 1])  # flown as the policy gave it, bit for bit
+    np.testing.assert_allclose(out.accel_raw[0], [0.0, 0.0, 0.5], atol=1e-12)
+    # "top" (the default) ignores the alternatives: the policy's choice, projected onto a_z <= 2/3.
+    top = HOCBFShield(ShieldConfig(**HYP)).filter(cmd, pos, vel, points_w=pts, alternatives=alts)
+    assert top.choice[0] == 0 and top.active[0]
+    np.testing.assert_allclose(top.accel_safe[0], [0.0, 0.0, 2.0 / 3.0], atol=1e-9)
+    # A clean top candidate is flown unchanged whatever the alternatives.
+    clean = HOCBFShield(ShieldConfig(**HYP, hypotheses="first_clean")).filter(
+        _climb(0.0)[None], pos, vel, points_w=pts, alternatives=alts)  # fmt: skip
+    assert clean.choice[0] == 0 and not clean.active[0] and np.array_equal(clean.command[0], _climb(0.0))
+
+
+def test_hypotheses_when_none_is_clean_first_clean_corrects_the_top_and_safest_the_best_margin():
+    # Same point: candidates a_z = 2 (margin -4, yaw 0), 1.5 (-2.5, yaw 0.1), 1 (-1, yaw 0.2); all break the row.
+    pos, vel, pts = np.array([[0.0, 0.0, 1.5]]), np.zeros((1, 3)), [np.array([[0.0, 0.0, 3.0]])]
+    cmd = _climb(2.0)[None]
+    alts = np.array([[_climb(1.5, 0.1), _climb(1.0, 0.2)]])
+    first = HOCBFShield(ShieldConfig(**HYP, hypotheses="first_clean")).filter(cmd, pos, vel, points_w=pts,
+                                                                            alternatives=alts)  # fmt: skip
+    assert first.choice[0] == 0 and first.active[0] and first.command[0, 3] == 0.0
+    np.testing.assert_allclose(first.accel_safe[0], [0.0, 0.0, 2.0 / 3.0], atol=1e-9)
+    safest = HOCBFShield(ShieldConfig(**HYP, hypotheses="safest")).filter(cmd, pos, vel, points_w=pts,
+                                                                        alternatives=alts)  # fmt: skip
+    assert safest.choice[0] == 2 and safest.active[0]
+    np.testing.assert_allclose(safest.accel_raw[0], [0.0, 0.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(safest.accel_safe[0], [0.0, 0.0, 2.0 / 3.0], atol=1e-9)
+    assert safest.command[0, 3] == 0.2  # the corrected command keeps the chosen candidate's yaw
+    np.testing.assert_allclose(accel_from_command(safest.command)[0], [0.0, 0.0, 2.0 / 3.0], atol=1e-9)
+
+
+def test_hypotheses_screen_the_altitude_rows_too():
+    # No obstacle point; the ground row at 0.35 m with a0 = 1, a1 = 2, vehicle at rest at z = 0.5:
+    # a_z >= -a1 v_z - a0 (z - 0.35) = -0.15. Candidate a_z = -1 breaks it, a_z = -0.1 does not.
+    cfg = ShieldConfig(**{**HYP, "min_altitude": 0.35}, hypotheses="first_clean")
+    out = HOCBFShield(cfg).filter(_climb(-1.0)[None], np.array([[0.0, 0.0, 0.5]]), np.zeros((1, 3)),
+                                  points_w=[np.zeros((0, 3))], alternatives=np.array([[_climb(-0.1)]]))  # fmt: skip
+    assert out.choice[0] == 1 and not out.active[0]
+
+
+def test_hypotheses_input_and_config_errors():
+    shield = HOCBFShield(ShieldConfig(**HYP, hypotheses="first_clean"))
+    pos, vel, pts = np.zeros((2, 3)), np.zeros((2, 3)), [np.zeros((0, 3))] * 2
+    cmd = np.array([_climb(0.0), _climb(0.0)])
+    with pytest.raises(ValueError, match=r"alternatives must be \(N, J, 4\)"):
+        shield.filter(cmd, pos, vel, points_w=pts, alternatives=np.zeros((1, 2, 4)))
+    bad = np.array([[_climb(0.0)], [_climb(0.0)]])
+    bad[1, 0, 2] = np.inf
+    with pytest.raises(ValueError, match=r"alternative command for vehicle index\(es\) \[1\]"):
+        shield.filter(cmd, pos, vel, points_w=pts, alternatives=bad)
+    with pytest.raises(ConfigError, match="hypotheses"):
+        load_config(ShieldConfig, overrides=["hypotheses=best"])

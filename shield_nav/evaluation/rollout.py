@@ -192,8 +192,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         on_step(env, 0, np.zeros(n, dtype=bool))
     while (end_step < 0).any():
         live = end_step < 0
+        alt_act = alt_cmd = None
         if policy is not None or teacher is not None:
-            alt_act = alt_cmd = None
             if policy is not None and pick_hypotheses:
                 act, alt_act, h = policy.step_hypotheses(policy.state_of(obs), obs["depth"], h)
                 alt_cmd = np.stack([env.action_to_command(np.clip(alt_act[:, j], -1.0, 1.0))

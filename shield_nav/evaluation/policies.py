@@ -134,12 +134,16 @@ def _sha256(path: str) -> str:
     return h.hexdigest()
 
 
+POLICY_FILES = ("policy.onnx", "exported/policy.onnx", "policy.pt", "exported/policy.pt")
+"""Where an exported actor is looked for inside a checkpoint folder, in this order."""
+
+
 def _find_policy_file(path: str, name: str) -> str:
     if not os.path.exists(path):
         raise EvalError(f"checkpoint {name!r}: {path!r} does not exist")
     if os.path.isfile(path):
         return path
-    for rel in ("policy.onnx", "exported/policy.onnx", "policy.pt", "exported/policy.pt"):
+    for rel in POLICY_FILES:
         cand = os.path.join(path, rel)
         if os.path.isfile(cand):
             return cand

@@ -31,7 +31,7 @@ from shield_nav.evaluation.config import (
     row_shield_config,
 )
 from shield_nav.evaluation.metrics import aggregate
-from shield_nav.evaluation.policies import PolicyInfo, check_layout, load_policy, load_teacher
+from shield_nav.evaluation.policies import POLICY_FILES, PolicyInfo, check_layout, load_policy, load_teacher
 from shield_nav.evaluation.report import _header_lines, csv_table, detail_table, latex_table, paper_table
 from shield_nav.evaluation.rollout import (
     Prepared,
@@ -121,7 +121,7 @@ def _hypotheses_policy(pol: Any, path: str, name: str, rows: list[str]) -> Any:
     instead; a policy without candidates to choose from is an error naming the option, before any flight.
     """
     if pol.info.kind == "onnx" and os.path.isdir(path):
-        for rel in ("policy.pt", "exported/policy.pt"):
+        for rel in (f for f in POLICY_FILES if f.endswith(".pt")):
             if os.path.isfile(os.path.join(path, rel)):
                 pol = load_policy(os.path.join(path, rel), name)
                 break

@@ -135,6 +135,19 @@ class ShieldConfig:
     vehicle passes it still constrains the command for that long. 0: the current image only (the paper). The
     default, 0.5 s at 100 Hz, was chosen on the validation scenes behind the Full policy (docs/shield.md, "Point
     memory"): most of its collisions at 3 m/s were with obstacles beside it, out of view."""
+    map_seconds: float = 0.0
+    """If > 0, each vehicle also keeps a dense local map of *every* surface its images showed in the last
+    ``map_seconds`` [s] (world frame), and its points join the cloud as the point memory's do. Unlike the point
+    memory, which keeps only the K points the constraints used, the map keeps an obstacle that was seen but never
+    among the tightest, e.g. a box beside a turn. Every ``map_every`` calls the image's points within
+    ``map_radius`` are thinned to one point per ``map_voxel`` cube (the newest wins) and merged; points older than
+    ``map_seconds`` or farther than ``map_radius`` are dropped. 0: off (docs/shield.md, "Local map")."""
+    map_voxel: float = 0.2
+    """Edge [m] of the cubes the local map keeps one point of (``map_seconds`` > 0)."""
+    map_radius: float = 6.0
+    """Points farther than this from the vehicle [m] are neither added to nor kept in the local map."""
+    map_every: int = 5
+    """The local map takes in the current image every this many calls (5: 20 Hz at 100 Hz)."""
     z_window: list[float] = field(default_factory=lambda: [0.15, 1.0e9])
     """Only points with world height z in [min, max] metres are obstacles for the shield. The default drops the
     ground (floor at z = 0): with the |r|^2 barrier, floor points 2-8 m ahead of a vehicle cruising at 5 m/s and
@@ -239,6 +252,14 @@ class ShieldConfig:
             val = getattr(self, key)
             require(math.isfinite(val) and 0.01 <= val <= 1000, f"{prefix}{key}", f"must be in [0.01, 1000], got {val}")
         require(0 <= self.memory_steps <= 1000, f"{prefix}memory_steps", "must be in [0, 1000]")
+        require(0.0 <= self.map_seconds <= 60.0 and math.isfinite(self.map_seconds), f"{prefix}map_seconds",
+                f"must be in [0, 60] s (0: off), got {self.map_seconds}")  # fmt: skip
+        require(0.01 <= self.map_voxel <= 5.0 and math.isfinite(self.map_voxel), f"{prefix}map_voxel",
+                f"must be in [0.01, 5] m, got {self.map_voxel}")  # fmt: skip
+        require(0.0 < self.map_radius <= 100.0 and math.isfinite(self.map_radius), f"{prefix}map_radius",
+                f"must be in (0, 100] m, got {self.map_radius}")  # fmt: skip
+        require(isinstance(self.map_every, int) and 1 <= self.map_every <= 1000, f"{prefix}map_every",
+                f"must be an integer in [1, 1000], got {self.map_every!r}")  # fmt: skip
         require(0.0 <= self.lag_s <= 1.0 and math.isfinite(self.lag_s), f"{prefix}lag_s",
                 f"must be in [0, 1] s, got {self.lag_s}")  # fmt: skip
         require(self.control_dt > 0 and math.isfinite(self.control_dt), f"{prefix}control_dt",
@@ -263,6 +284,15 @@ class ShieldConfig:
             f"{prefix}point_filter",
             f"must be [min, max] with 0 <= min < max, got {self.point_filter}",
         )
+
+
+def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One int64 key per point (M, 3): its cube ``floor(p / voxel)``, 21 bits per axis (indices within +-2^20)."""
+    k = np.floor(points / voxel).astype(np.int64)
+    if len(k) and np.abs(k).max() >= 1 << 20:
+        raise ValueError(f"local map: a point lies beyond +-2^20 cubes of {voxel} m from the origin")
+    k += 1 << 20
+    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
 HYPOTHESIS_MODES = ("top", "first_clean", "safest")
@@ -311,6 +341,8 @@ class HOCBFShield:
         self._memory: dict[int, np.ndarray] = {}  # vehicle id -> (memory_steps * K, 3) ring of points (NaN: empty)
         self._memory_head: dict[int, int] = {}
         self._prev_vel: dict[int, np.ndarray] = {}  # vehicle id -> velocity at its previous call (lag_s)
+        self._map: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # vehicle id -> local map: points (M, 3), call stamps
+        self._map_calls: dict[int, int] = {}  # vehicle id -> calls since its reset (map_seconds)
         # One image's points followed by the remembered ones, written in place (no per-step allocation or copy).
         cam = self.camera
         self._cloud = np.empty((cam.height * cam.width + cfg.memory_steps * cfg.max_constraints, 3))
@@ -534,11 +566,15 @@ class HOCBFShield:
             self._memory.clear()
             self._memory_head.clear()
             self._prev_vel.clear()
+            self._map.clear()
+            self._map_calls.clear()
         else:
             for i in np.atleast_1d(ids):
                 self._memory.pop(int(i), None)
                 self._memory_head.pop(int(i), None)
                 self._prev_vel.pop(int(i), None)
+                self._map.pop(int(i), None)
+                self._map_calls.pop(int(i), None)
 
     def _remember(self, vid: int, points: np.ndarray) -> None:
         """Store the obstacle points of this step's constraints in vehicle ``vid``'s ring."""
@@ -551,6 +587,41 @@ class HOCBFShield:
         ring[head * k : (head + 1) * k] = np.nan
         ring[head * k : head * k + len(points)] = points
         self._memory_head[vid] = (head + 1) % self.cfg.memory_steps
+
+    def map_points(self, vid: int) -> np.ndarray:
+        """The points (M, 3) of vehicle ``vid``'s local map (``map_seconds`` > 0); empty if it has none."""
+        m = self._map.get(int(vid))
+        return np.zeros((0, 3)) if m is None else m[0].copy()
+
+    def _with_map(self, vid: int, pts: np.ndarray, n_img: int, p: np.ndarray) -> np.ndarray:
+        """Merge this call's image points (``pts[:n_img]``) into ``vid``'s local map when due; the cloud plus the map.
+
+        The intake takes the image's points within ``map_radius`` of ``p`` and inside ``z_window``; the merged set
+        keeps one point per ``map_voxel`` cube, the newest (the image's points come first, and ``np.unique``
+        returns each key's first index), and drops what is older than ``map_seconds`` or beyond ``map_radius``.
+        """
+        cfg = self.cfg
+        calls = self._map_calls.get(vid, 0)
+        self._map_calls[vid] = calls + 1
+        m = self._map.get(vid)
+        if calls % cfg.map_every == 0:
+            img = pts[:n_img]
+            r2 = cfg.map_radius * cfg.map_radius
+            z_lo, z_hi = cfg.z_window
+            new = img[(((img - p) ** 2).sum(axis=1) <= r2) & (img[:, 2] >= z_lo) & (img[:, 2] <= z_hi)]
+            stamps = np.full(len(new), calls, dtype=np.int64)
+            if m is not None:
+                old, old_st = m
+                keep = (calls - old_st <= round(cfg.map_seconds / cfg.control_dt)) & (
+                    ((old - p) ** 2).sum(axis=1) <= r2
+                )
+                new = np.concatenate((new, old[keep]))
+                stamps = np.concatenate((stamps, old_st[keep]))
+            _, first = np.unique(_voxel_keys(new, cfg.map_voxel), return_index=True)
+            m = self._map[vid] = (new[first], stamps[first])
+        if m is None or not len(m[0]):
+            return pts
+        return np.concatenate((pts, m[0]))
 
     # ------------------------------------------------------------------------------ batched
     def filter_env(self, env, command: np.ndarray, ids: np.ndarray | None = None,  # noqa: ANN001
@@ -620,6 +691,7 @@ class HOCBFShield:
             ring = self._memory.get(vid) if self.cfg.memory_steps > 0 else None
             if depth is not None and not self.cfg.voxel:
                 pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, out=self._cloud)
+                n_img = len(pts)
                 if ring is not None:  # the remembered points go right after the image's, in the same buffer
                     pts = self._cloud[: _append_remembered(ring, self._cloud, len(pts))]
             else:
@@ -627,9 +699,12 @@ class HOCBFShield:
                     pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel)
                 else:
                     pts = np.asarray(points_w[i], dtype=np.float64).reshape(-1, 3)
+                n_img = len(pts)
                 if ring is not None:
                     pts = np.concatenate((pts, ring[~np.isnan(ring[:, 0])]))
             p_i, v_i = pos_w[i], vel_w[i]
+            if self.cfg.map_seconds > 0.0:
+                pts = self._with_map(vid, pts, n_img, np.asarray(p_i, dtype=np.float64))
             lagged = None
             if lag > 0.0:
                 # The state the command will act on: the vehicle keeps its current acceleration for one lag.

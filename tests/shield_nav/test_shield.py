@@ -334,6 +334,67 @@ def test_point_memory_from_depth_matches_the_same_points_given_as_a_list():
     assert remembered > 0 and active > 0
 
 
+def test_local_map_keeps_a_seen_obstacle_the_sparse_memory_dropped():
+    # Call 1 sees two points: a far wall point straight ahead (tightest) and a pole point 1.5 m ahead-left. With
+    # max_constraints 1 the sparse memory keeps only the selected point; call 2 sees nothing while the vehicle drifts
+    # to the pole (the geometry of the point-memory test above: its row there is violated). Only the local map
+    # still holds the pole, so only the shield with the map keeps the constraint, at the pole's own point.
+    pole, wall = np.array([1.5, 0.8, 1.5]), np.array([0.9, 0.0, 1.5])
+    cmd = np.array([[G / math.cos(0.3), -0.3, 0.0, 0.0]])
+    vel = np.array([[0.5, 1.0, 0.0]])
+    sparse = HOCBFShield(ShieldConfig(memory_steps=10, max_constraints=1))
+    mapped = HOCBFShield(ShieldConfig(memory_steps=10, max_constraints=1, map_seconds=1.0, map_voxel=0.2))
+    for sh in (sparse, mapped):
+        sh.filter(cmd, np.array([[0.0, 0.0, 1.5]]), vel, points_w=[np.stack((pole, wall))])
+    np.testing.assert_allclose(sparse._memory[0][0], wall)  # the one point the sparse memory kept
+    pos2 = np.array([[1.2, 0.4, 1.5]])
+    nothing = [np.zeros((0, 3))]
+    out_sparse = sparse.filter(cmd, pos2, vel, points_w=nothing)
+    out_map = mapped.filter(cmd, pos2, vel, points_w=nothing)
+    np.testing.assert_allclose(np.sort(mapped.map_points(0), axis=0), np.sort(np.stack((pole, wall)), axis=0))
+    assert out_map.active[0] and not out_sparse.active[0]  # the wall (behind-right now) does not bind; the pole does
+    r, _, _ = mapped.constraints(pole[None], pos2[0], vel[0], out_map.accel_raw[0])
+    np.testing.assert_allclose(r, pos2 - pole)
+    mapped.reset([0])
+    assert len(mapped.map_points(0)) == 0
+
+
+def test_local_map_thins_to_the_newest_point_per_cube_and_forgets_by_age_and_distance():
+    # map_every 1 (every call takes in its image), 0.5 m cubes, 0.05 s (5 calls) of age, 3 m of radius.
+    cfg = ShieldConfig(memory_steps=0, map_seconds=0.05, map_voxel=0.5, map_radius=3.0, map_every=1)
+    sh = HOCBFShield(cfg)
+    cmd, vel, far = np.array([[G, 0.0, 0.0, 0.0]]), np.zeros((1, 3)), np.array([[-20.0, 0.0, 1.5]])
+    at = np.array([[0.0, 0.0, 1.5]])
+    a, b, beyond = [2.10, 0.10, 1.60], [2.40, 0.45, 1.90], [3.5, 0.0, 1.5]  # a and b share the cube (4, 0, 3)
+    floor = [1.0, 0.0, 0.05]  # below the z window's 0.15 m: never taken in
+    sh.filter(cmd, at, vel, points_w=[np.array([a, beyond, floor])])
+    np.testing.assert_allclose(sh.map_points(0), [a])  # beyond (3.5 m) and the floor are not taken in
+    sh.filter(cmd, at, vel, points_w=[np.array([b])])
+    np.testing.assert_allclose(sh.map_points(0), [b])  # same cube: the newer point replaces the older
+    for _ in range(4):  # calls 2-5: nothing seen; b (stamp 1) is 1-4 calls old, kept
+        sh.filter(cmd, at, vel, points_w=[np.zeros((0, 3))])
+    np.testing.assert_allclose(sh.map_points(0), [b])
+    sh.filter(cmd, at, vel, points_w=[np.zeros((0, 3))])  # call 6: 5 calls old, still within 0.05 s
+    assert len(sh.map_points(0)) == 1
+    sh.filter(cmd, at, vel, points_w=[np.zeros((0, 3))])  # call 7: 6 calls old: forgotten
+    assert len(sh.map_points(0)) == 0
+    sh.filter(cmd, at, vel, points_w=[np.array([a])])
+    sh.filter(cmd, far, vel, points_w=[np.zeros((0, 3))])  # the vehicle is now 22 m away: a is dropped
+    assert len(sh.map_points(0)) == 0
+    # map_every 3: only calls 0, 3, 6, ... take in their image.
+    every3 = HOCBFShield(ShieldConfig(memory_steps=0, map_seconds=1.0, map_every=3))
+    for k in range(4):
+        every3.filter(cmd, at, vel, points_w=[np.array([[1.0 + k, 0.0, 1.5]])])
+    np.testing.assert_allclose(np.sort(every3.map_points(0)[:, 0]), [1.0, 4.0])
+
+
+def test_local_map_config_errors_name_the_key():
+    for key, val in (("map_seconds", -1.0), ("map_seconds", float("nan")), ("map_voxel", 0.0), ("map_radius", 0.0),
+                     ("map_every", 0), ("map_every", 1.5)):  # fmt: skip
+        with pytest.raises(ValueError, match=f"shield.{key}"):
+            ShieldConfig(**{key: val}).validate("shield.")
+
+
 def test_ground_row_hand_computed_and_projection():
     # Descending at 2 m/s, 0.5 m high, min_altitude 0.35, alpha0 16, alpha1 8: b = -8 (-2) - 16 (0.15) = 13.6.
     assert ground_row(0.5, -2.0, 16.0, 8.0, 0.35) == pytest.approx(13.6)

@@ -19,6 +19,7 @@ import yaml
 
 from shield_nav import evaluation as E
 from shield_nav.baselines import TrackingConfig, accel_to_command, free_distances
+from shield_nav.shield import ShieldConfig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TINY = [
@@ -598,6 +599,9 @@ def test_row_shield_overrides_change_that_rows_shield_only(tmp_path):
             acted = np.sum(tr[1:, 5] * np.diff(keep))
             assert acted == pytest.approx(t["shield"]["active_steps"], abs=5e-4 * every * len(keep))
     assert E.BUILTIN_ROWS["full_paper_shield"].shield_overrides["active_set_iterations"] == 0
+    local_map = ShieldConfig(**E.BUILTIN_ROWS["full_local_map"].shield_overrides)
+    local_map.validate()
+    assert (local_map.map_seconds, local_map.map_voxel, local_map.map_radius) == (2.0, 0.2, 6.0)
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides: unknown key\(s\) \['alpha2'\]"):
         E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.alpha2=1.0"))
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides\.lag_s"):

@@ -599,9 +599,12 @@ def test_row_shield_overrides_change_that_rows_shield_only(tmp_path):
             acted = np.sum(tr[1:, 5] * np.diff(keep))
             assert acted == pytest.approx(t["shield"]["active_steps"], abs=5e-4 * every * len(keep))
     assert E.BUILTIN_ROWS["full_paper_shield"].shield_overrides["active_set_iterations"] == 0
-    local_map = ShieldConfig(**E.BUILTIN_ROWS["full_local_map"].shield_overrides)
-    local_map.validate()
-    assert (local_map.map_seconds, local_map.map_voxel, local_map.map_radius) == (2.0, 0.2, 6.0)
+    assert E.BUILTIN_ROWS["full_paper_shield"].shield_overrides["map_seconds"] == 0.0  # the paper keeps no map
+    # The default shield keeps its local map (2 s, 0.2 m, 6 m); the row full_no_map flies Full without it.
+    assert (ShieldConfig().map_seconds, ShieldConfig().map_voxel, ShieldConfig().map_radius) == (2.0, 0.2, 6.0)
+    no_map = ShieldConfig(**E.BUILTIN_ROWS["full_no_map"].shield_overrides)
+    no_map.validate()
+    assert no_map.map_seconds == 0.0 and E.BUILTIN_ROWS["full_no_map"].policy == "full"
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides: unknown key\(s\) \['alpha2'\]"):
         E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.alpha2=1.0"))
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides\.lag_s"):

@@ -295,8 +295,8 @@ def test_point_memory_keeps_constraints_for_obstacles_that_left_the_view():
     pole = np.array([[1.5, 0.8, 1.5]])
     cmd = np.array([[G / math.cos(0.3), -0.3, 0.0, 0.0]])  # rolling left, towards +y
     vel = np.array([[0.5, 1.0, 0.0]])
-    plain = HOCBFShield(ShieldConfig(memory_steps=0))  # the paper: the current image only
-    mem = HOCBFShield(ShieldConfig(memory_steps=10))
+    plain = HOCBFShield(ShieldConfig(memory_steps=0, map_seconds=0.0))  # the paper: the current image only
+    mem = HOCBFShield(ShieldConfig(memory_steps=10, map_seconds=0.0))  # the sparse memory alone
     for sh in (plain, mem):
         first = sh.filter(cmd, np.array([[0.0, 0.0, 1.5]]), vel, points_w=[pole])
         assert first.num_constraints[0] == 1
@@ -342,7 +342,7 @@ def test_local_map_keeps_a_seen_obstacle_the_sparse_memory_dropped():
     pole, wall = np.array([1.5, 0.8, 1.5]), np.array([0.9, 0.0, 1.5])
     cmd = np.array([[G / math.cos(0.3), -0.3, 0.0, 0.0]])
     vel = np.array([[0.5, 1.0, 0.0]])
-    sparse = HOCBFShield(ShieldConfig(memory_steps=10, max_constraints=1))
+    sparse = HOCBFShield(ShieldConfig(memory_steps=10, max_constraints=1, map_seconds=0.0))
     mapped = HOCBFShield(ShieldConfig(memory_steps=10, max_constraints=1, map_seconds=1.0, map_voxel=0.2))
     for sh in (sparse, mapped):
         sh.filter(cmd, np.array([[0.0, 0.0, 1.5]]), vel, points_w=[np.stack((pole, wall))])
@@ -632,7 +632,7 @@ def test_lag_aware_shield_stays_clear_where_the_lag_free_one_hits(kind):
     p1 = p2 = 8 /s (later, harder corrections) the lag-free shield lets the vehicle hit the obstacle at 5 m/s
     (measured minimum distance 0.19 m to the pole's and the wall's surface, contact); with lag_s = 0.15 s the same
     gains stop it at 0.50 m. Both flights start 12 m away at 5 m/s."""
-    gains = {"barrier": "distance", "alpha0": 64.0, "alpha1": 16.0, "r_safe": 0.5}
+    gains = {"barrier": "distance", "alpha0": 64.0, "alpha1": 16.0, "r_safe": 0.5, "map_seconds": 0.0}
     lag_free = fly(kind, [5.0], shielded=True, duration=4.5, shield_cfg=ShieldConfig(**gains, lag_s=0.0))
     lagged = fly(kind, [5.0], shielded=True, duration=4.5, shield_cfg=ShieldConfig(**gains, lag_s=0.15))
     assert lag_free.collided.all()

@@ -32,9 +32,11 @@ def _env():
 def test_the_adapter_flies_exactly_what_an_independent_shield_commands():
     # With the intervention penalty on: the reward is the env's minus W x the independent shield's correction.
     looped, ref, alone = _env(), _env(), _env()
-    vec = RslRlVecEnv(looped, command_filter=ShieldInLoop(ShieldConfig(), looped.cfg.camera), filter_penalty=W)
+    # The shield without its local map, as the shipped Full's training loop has it (recipe_full.yaml).
+    vec = RslRlVecEnv(looped, command_filter=ShieldInLoop(ShieldConfig(map_seconds=0.0), looped.cfg.camera),
+                      filter_penalty=W)  # fmt: skip
     looped.reset(seed=0, options=OPTS)  # the adapter's own reset drew random episodes; restart both on OPTS
-    shield = HOCBFShield(ShieldConfig(), ref.cfg.camera)
+    shield = HOCBFShield(ShieldConfig(map_seconds=0.0), ref.cfg.camera)
     goal = make_baseline("goal", BaselineConfig())
     goal.reset(ref)
     active_steps, corrections = 0, []

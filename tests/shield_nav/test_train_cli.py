@@ -309,12 +309,12 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
             "timeout_factor"}  # fmt: skip
         assert cfg.env.episode.timeout_factor == 1.5 and base["env"]["episode"]["timeout_factor"] == 2.5
         # the shield it trains behind: the default but for the radius, memory, planned braking deceleration and
-        # ground row the shipped run was trained with (the deploy defaults changed after it: 0.3 m, 50 steps, a_b 10,
-        # ground row at 0.35 m)
+        # ground row the shipped run was trained with, and no local map (the deploy defaults changed after it: 0.3 m,
+        # 50 steps, a_b 10, ground row at 0.35 m, a 2 s local map)
         assert {k for k in full["shield"] if full["shield"][k] != base["shield"][k]} == {
-            "r_safe", "memory_steps", "brake_accel", "min_altitude"}  # fmt: skip
+            "r_safe", "memory_steps", "brake_accel", "min_altitude", "map_seconds"}  # fmt: skip
         assert cfg.shield.r_safe == 0.5 and cfg.shield.memory_steps == 0 and cfg.shield.brake_accel == 8.0
-        assert cfg.shield.min_altitude == 0.0
+        assert cfg.shield.min_altitude == 0.0 and cfg.shield.map_seconds == 0.0
         ckpt = torch.load(os.path.join(REPO, "checkpoints", "full", "model.pt"), weights_only=False)
         # the recipe rebuilds the shipped run: its stored config, read back with the defaults of any keys added since,
         # equals the recipe but for the name and the folder the run was written under (--log-dir)

@@ -5,9 +5,9 @@ from the shielded scripted flights at 3/5/7/9 m/s, so the QPs are the ones the s
 solver: QP time over the steps where the shield was active (mean, p99, max) and the active fraction; separately the
 point-cloud + constraint-selection cost and the whole shield step (point cloud, selection, QP, conversion back).
 ``formulations`` compares, in the same run, the whole step and the QP of the default shield against the paper's
-formulation (``PAPER_FORMULATION``: one-shot selection, no lag, p1 = p2 = 4 /s) and the backup-barrier option
-(``barrier: backup``), since absolute CPU times move 2-3x between machines of this kind; they replay the states in
-lockstep, so a slow spell hits all alike.
+formulation (``PAPER_FORMULATION``: one-shot selection, no lag, p1 = p2 = 4 /s), the backup-barrier option
+(``barrier: backup``) and the default without its local map (``map_seconds: 0``), since absolute CPU times move 2-3x
+between machines of this kind; they replay the states in lockstep, so a slow spell hits all alike.
 """
 
 from __future__ import annotations
@@ -116,12 +116,16 @@ def main(argv: list[str]) -> dict:
         "default": HOCBFShield(ShieldConfig(), cam),
         "paper": HOCBFShield(ShieldConfig(**PAPER_FORMULATION), cam),
         "backup": HOCBFShield(ShieldConfig(barrier="backup"), cam),  # the option of docs/shield.md, "Backup barrier"
+        "no_map": HOCBFShield(ShieldConfig(map_seconds=0.0), cam),  # the default without its local map ("Local map")
     }
     for name, (solve, total, active) in replay_interleaved(shields, states, args.repeats).items():
         formulations[name] = {"qp": _stats(solve), "whole_step": _stats(total),
                               "active_fraction": round(float(np.mean(active)), 4)}  # fmt: skip
     formulations["whole_step_mean_ratio"] = round(
         formulations["default"]["whole_step"]["mean_us"] / formulations["paper"]["whole_step"]["mean_us"], 3
+    )
+    formulations["map_whole_step_mean_ratio"] = round(
+        formulations["default"]["whole_step"]["mean_us"] / formulations["no_map"]["whole_step"]["mean_us"], 3
     )
     # Point cloud + selection alone (no QP), over the same states.
     shield = HOCBFShield(ShieldConfig(), cam)

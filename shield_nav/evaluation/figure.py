@@ -3,7 +3,9 @@
 ``python -m shield_nav.evaluation.figure --table1 OUT[:ROW,ROW] [...] --table2 OUT[:ROW,ROW] [...] --out PNG``
 
 Each ``OUT`` is an ``eval.py`` output folder (its ``summary.json``); ``:ROW,ROW`` keeps only those rows, otherwise
-every row of the folder is drawn. Rows from several folders are merged (a row in two folders is refused: which one
+every row of the folder is drawn; ``ROW=AS`` draws row ``ROW`` as row ``AS`` (its colour, order, paper row and, for a
+row of configs/eval/rows.yaml, label), e.g. ``docs/data/t1_full:full_local_map=full`` for a run flown under an
+earlier row name. Rows from several folders are merged (a row in two folders is refused: which one
 would be the table's?), and an unfinished run is refused, so a figure never shows part of a table. One column of
 panels per table: success rate with its 95 % Wilson interval on top, the mean realised speed of the successful flights
 below (with the target speed as a dashed line). Where a row reproduces one of the paper's (``distance``,
@@ -21,6 +23,7 @@ import sys
 
 import numpy as np
 
+from shield_nav.evaluation.config import BUILTIN_ROWS
 from shield_nav.evaluation.paper import PAPER_SPEEDS, PAPER_TABLE_I, PAPER_TABLE_II
 from shield_nav.evaluation.plots import _plt, cell_series
 
@@ -51,13 +54,18 @@ def load_rows(specs: list[str]) -> dict[str, dict]:
         if done is not None and total is not None and done < total:
             raise ValueError(f"{spec!r}: the run is unfinished ({done} of {total} units); resume it first")
         wanted = [n for n in names.split(",") if n] if names else list(summary["rows"])
-        for name in wanted:
+        for item in wanted:
+            name, renamed, alias = item.partition("=")
+            if renamed and not (alias and alias.replace("_", "").isalnum()):
+                raise ValueError(f"{spec!r}: {item!r} must be ROW=AS with AS a row name, e.g. full_local_map=full")
             if name not in summary["rows"]:
                 raise ValueError(f"{spec!r}: no row {name!r} in {path} (rows: {', '.join(summary['rows'])})")
-            if name in rows:
-                raise ValueError(f"row {name!r} is in both {rows[name]['source']} and {out}: name one with OUT:ROW")
-            label = summary["rows"][name].get("label") or name
-            rows[name] = {"label": label, "cells": summary["cells"][name], "source": out}
+            key = alias if renamed else name
+            if key in rows:
+                raise ValueError(f"row {key!r} is in both {rows[key]['source']} and {out}: name one with OUT:ROW")
+            known = BUILTIN_ROWS[key].label if renamed and key in BUILTIN_ROWS else None
+            label = known or (key if renamed else summary["rows"][name].get("label") or name)
+            rows[key] = {"label": label, "cells": summary["cells"][name], "source": out}
     return rows
 
 
@@ -136,8 +144,12 @@ def _paper_lines(ax_sr, ax_v, row: dict, colour: str) -> None:  # noqa: ANN001
 def main(argv: list[str] | None = None) -> int:
     """Command line: see the module docstring."""
     ap = argparse.ArgumentParser(prog="python -m shield_nav.evaluation.figure", description=__doc__.split("\n")[0])
-    ap.add_argument("--table1", nargs="+", default=[], metavar="OUT[:ROWS]", help="ablation (Table I) outputs")
-    ap.add_argument("--table2", nargs="+", default=[], metavar="OUT[:ROWS]", help="benchmark (Table II) outputs")
+    ap.add_argument(
+        "--table1", nargs="+", default=[], metavar="OUT[:ROWS]", help="ablation (Table I) outputs; ROWS: ROW[=AS],..."
+    )
+    ap.add_argument(
+        "--table2", nargs="+", default=[], metavar="OUT[:ROWS]", help="benchmark (Table II) outputs; ROWS: ROW[=AS],..."
+    )
     ap.add_argument("--paper-methods", default="diffphys", help="the paper's other Table II methods, comma list")
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args(argv)

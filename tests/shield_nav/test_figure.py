@@ -72,6 +72,23 @@ def test_rows_are_merged_from_several_runs_and_can_be_picked(tmp_path):
     assert sorted(load_rows([a + ":full", b])) == ["distance", "full"]
 
 
+def test_a_row_can_be_drawn_under_another_name(tmp_path):
+    # A run flown under an earlier row name (full_local_map) drawn as the Full row: its cells, Full's label from
+    # configs/eval/rows.yaml; an unknown target name keeps the name as its label.
+    cells = {"3": _cell(160, 133, 2.84)}
+    a = _write_run(tmp_path / "a", {"full_local_map": cells, "student": {"3": _cell(10, 5, 3.0)}})
+    rows = load_rows([a + ":full_local_map=full,student=mine"])
+    assert sorted(rows) == ["full", "mine"] and rows["full"]["cells"] == cells
+    assert rows["full"]["label"] == "Full" and rows["mine"]["label"] == "mine"
+    b = _write_run(tmp_path / "b", {"full": cells})
+    with pytest.raises(ValueError, match="row 'full' is in both"):
+        load_rows([a + ":full_local_map=full", b])
+    with pytest.raises(ValueError, match="'full_local_map=' must be ROW=AS"):
+        load_rows([a + ":full_local_map="])
+    with pytest.raises(ValueError, match="no row 'fulll'"):
+        load_rows([a + ":fulll=full"])
+
+
 def test_bad_inputs_are_refused_by_name(tmp_path):
     a = _write_run(tmp_path / "a", {"full": {"3": _cell(10, 9, 3.0)}})
     b = _write_run(tmp_path / "b", {"full": {"3": _cell(10, 8, 3.0)}})

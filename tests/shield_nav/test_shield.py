@@ -395,6 +395,17 @@ def test_local_map_config_errors_name_the_key():
             ShieldConfig(**{key: val}).validate("shield.")
 
 
+def test_a_shield_stored_before_the_local_map_default_reads_back_without_it():
+    # The map is on by default (2 s); a shield config written before the key existed flew without it, so
+    # stored_config reads the missing key as 0 (PRE_FIELD_VALUES), and keeps a stored value as it is.
+    from envs.config import stored_config
+
+    assert ShieldConfig().map_seconds == 2.0
+    assert stored_config(ShieldConfig, {"r_safe": 0.5})["map_seconds"] == 0.0
+    assert stored_config(ShieldConfig, {"map_seconds": 1.5})["map_seconds"] == 1.5
+    assert ShieldConfig(**stored_config(ShieldConfig, {"r_safe": 0.5})).map_seconds == 0.0
+
+
 def test_ground_row_hand_computed_and_projection():
     # Descending at 2 m/s, 0.5 m high, min_altitude 0.35, alpha0 16, alpha1 8: b = -8 (-2) - 16 (0.15) = 13.6.
     assert ground_row(0.5, -2.0, 16.0, 8.0, 0.35) == pytest.approx(13.6)

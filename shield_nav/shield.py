@@ -25,7 +25,7 @@ import numpy as np
 import qpsolvers
 import scipy.sparse as sp
 
-from envs.camera import CameraConfig, depth_to_points
+from envs.camera import CameraConfig, depth_to_points, voxel_keys
 from envs.config import require
 from shield_nav.shield_rows import (
     _accel_from_command_1,
@@ -292,15 +292,6 @@ class ShieldConfig:
             f"{prefix}point_filter",
             f"must be [min, max] with 0 <= min < max, got {self.point_filter}",
         )
-
-
-def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One int64 key per point (M, 3): its cube ``floor(p / voxel)``, 21 bits per axis (indices within +-2^20)."""
-    k = np.floor(points / voxel).astype(np.int64)
-    if len(k) and np.abs(k).max() >= 1 << 20:
-        raise ValueError(f"local map: a point lies beyond +-2^20 cubes of {voxel} m from the origin")
-    k += 1 << 20
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
 HYPOTHESIS_MODES = ("top", "first_clean", "safest")
@@ -625,7 +616,7 @@ class HOCBFShield:
                 )
                 new = np.concatenate((new, old[keep]))
                 stamps = np.concatenate((stamps, old_st[keep]))
-            _, first = np.unique(_voxel_keys(new, cfg.map_voxel), return_index=True)
+            _, first = np.unique(voxel_keys(new, cfg.map_voxel), return_index=True)
             m = self._map[vid] = (new[first], stamps[first])
         if m is None or not len(m[0]):
             return pts

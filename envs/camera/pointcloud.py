@@ -63,11 +63,35 @@ def _backproject(
 
 
 @nb.njit(**_NJIT)
+def _voxel_key(x: float, y: float, z: float, inv: float) -> int:
+    """The int64 key of the cube ``floor(p * inv)`` holding point ``p``: 21 bits per axis, indices within +-2^20."""
+    lim = 1 << 20
+    ix, iy, iz = int(math.floor(x * inv)), int(math.floor(y * inv)), int(math.floor(z * inv))
+    if not (-lim <= ix < lim and -lim <= iy < lim and -lim <= iz < lim):
+        raise ValueError("voxel index beyond +-2^20 (points too far or voxel too small)")
+    return ((ix + lim) << 42) | ((iy + lim) << 21) | (iz + lim)
+
+
+@nb.njit(**_NJIT)
+def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One int64 key per point (M, 3), equal exactly when two points share a cubic voxel of edge ``voxel`` (m).
+
+    The packing :func:`voxel_downsample` hashes: ``floor(p / voxel)`` per axis, 21 bits each (voxel indices within
+    +-2^20: +-10 km at 1 cm voxels; a point beyond raises ``ValueError``).
+    """
+    inv = 1.0 / voxel
+    out = np.empty(points.shape[0], dtype=np.int64)
+    for i in range(points.shape[0]):
+        out[i] = _voxel_key(points[i, 0], points[i, 1], points[i, 2], inv)
+    return out
+
+
+@nb.njit(**_NJIT)
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """Centroid of the points (M, 3) in each occupied cubic voxel of edge ``voxel`` (m), in first-seen order.
 
-    Voxel of a point: ``floor(p / voxel)`` per axis, packed into one int64 key (21 bits per axis, so voxel
-    indices must lie within +-2^20: +-10 km at 1 cm voxels); an open-addressing hash table maps key -> slot.
+    Voxel of a point: its :func:`voxel_keys` key (voxel indices within +-2^20: +-10 km at 1 cm voxels); an
+    open-addressing hash table maps key -> slot.
     """
     n = points.shape[0]
     size, bits = 1, 0
@@ -80,15 +104,9 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     cnt = np.empty(n, dtype=np.int64)
     m = 0
     inv = 1.0 / voxel
-    lim = 1 << 20
     last_key, j = -1, 0
     for i in range(n):
-        ix = int(math.floor(points[i, 0] * inv))
-        iy = int(math.floor(points[i, 1] * inv))
-        iz = int(math.floor(points[i, 2] * inv))
-        if not (-lim <= ix < lim and -lim <= iy < lim and -lim <= iz < lim):
-            raise ValueError("voxel_downsample: voxel index beyond +-2^20 (points too far or voxel too small)")
-        key = ((ix + lim) << 42) | ((iy + lim) << 21) | (iz + lim)
+        key = _voxel_key(points[i, 0], points[i, 1], points[i, 2], inv)
         if key != last_key:  # neighbouring pixels often share a voxel: skip the lookup
             # Fibonacci hashing: top ``bits`` bits of key * 2^64 / golden ratio (int64 wrap-around intended).
             h = ((key * _FIB) >> (64 - bits)) & (size - 1)

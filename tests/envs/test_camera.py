@@ -22,6 +22,7 @@ from envs.camera import (
     save_depth_png,
     save_depth_strip,
     voxel_downsample,
+    voxel_keys,
 )
 from envs.camera.reference import MjDepth, primitives_mjcf
 from envs.config import ConfigError, load_config
@@ -298,6 +299,23 @@ def test_points_drop_invalid_pixels_and_voxels_average():
         depth_to_points(depth, np.zeros(3), np.eye(3), cfg, out=np.empty((100, 3)))
     with pytest.raises(ValueError, match="out must be"):
         depth_to_points(depth, np.zeros(3), np.eye(3), cfg, voxel=0.5, out=buf)
+
+
+def test_voxel_keys_pack_cube_indices_by_hand():
+    # Cube indices floor(p / 0.1) written out: (0, 0, 0) twice, (-1, 0, 0), (1, 0, 0), (0, 0, -3).
+    pts = np.array([[0.05, 0.05, 0.05], [0.09, 0.01, 0.0], [-0.01, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, -0.25]])
+    lim = 2**20
+
+    def key(ix, iy, iz):
+        return (ix + lim) * 2**42 + (iy + lim) * 2**21 + (iz + lim)
+
+    assert voxel_keys(pts, 0.1).tolist() == [key(0, 0, 0), key(0, 0, 0), key(-1, 0, 0), key(1, 0, 0), key(0, 0, -3)]
+    assert voxel_keys(np.zeros((0, 3)), 0.1).shape == (0,)
+    # Downsampling groups by the same keys: one centroid per distinct key, in first-seen order.
+    assert np.allclose(voxel_downsample(pts, 0.1)[0], pts[:2].mean(axis=0))
+    assert len(voxel_downsample(pts, 0.1)) == 4
+    with pytest.raises(ValueError, match="beyond"):
+        voxel_keys(np.array([[0.0, 2.0**20 * 0.1 + 1.0, 0.0]]), 0.1)
 
 
 # ----------------------------------------------------------------------------- PNG helpers

@@ -60,11 +60,12 @@ def load_rows(specs: list[str]) -> dict[str, dict]:
                 raise ValueError(f"{spec!r}: {item!r} must be ROW=AS with AS a row name, e.g. full_local_map=full")
             if name not in summary["rows"]:
                 raise ValueError(f"{spec!r}: no row {name!r} in {path} (rows: {', '.join(summary['rows'])})")
-            key = alias if renamed else name
+            if renamed:  # drawn as row ``alias``: its label from configs/eval/rows.yaml where it is one of those
+                key, label = alias, (BUILTIN_ROWS[alias].label if alias in BUILTIN_ROWS else "") or alias
+            else:
+                key, label = name, summary["rows"][name].get("label") or name
             if key in rows:
                 raise ValueError(f"row {key!r} is in both {rows[key]['source']} and {out}: name one with OUT:ROW")
-            known = BUILTIN_ROWS[key].label if renamed and key in BUILTIN_ROWS else None
-            label = known or (key if renamed else summary["rows"][name].get("label") or name)
             rows[key] = {"label": label, "cells": summary["cells"][name], "source": out}
     return rows
 

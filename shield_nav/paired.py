@@ -41,7 +41,7 @@ import os
 from typing import Any
 
 from shield_nav.evaluation import wilson_interval
-from shield_nav.provenance import format_differences, version_differences
+from shield_nav.provenance import format_differences, manifest_record, version_differences
 
 __all__ = [
     "compare",
@@ -91,12 +91,12 @@ def row_trials(spec: str, speeds: list[float] | None = None) -> dict[tuple, dict
 
 
 def _packages(spec: str) -> dict | None:
-    """The package versions ``OUT_DIR``'s manifest records (None for an output written before they were)."""
+    """The package versions (and SIMD extensions) ``OUT_DIR``'s manifest records (None before they were recorded)."""
     path = os.path.join(spec.rpartition(":")[0], "manifest.json")
     if not os.path.exists(path):
         return None
     with open(path) as fh:
-        return json.load(fh).get("packages")
+        return manifest_record(json.load(fh))
 
 
 def _over_tops(pairs_trials: list[tuple[tuple, dict, dict]], side: int) -> int | None:

@@ -4,7 +4,9 @@ A seeded evaluation repeats trial for trial on one machine with one set of packa
 not: numpy, numba/llvmlite, scipy, MuJoCo or the QP solvers may round one operation differently, and a flight near
 the edge of a collision or of the time limit then ends the other way (how often: docs/evaluation.md, "Reproducing a
 table"). So every ``eval.py`` manifest and every checkpoint records these versions, a resumed evaluation names the
-ones that changed, and ``python -m shield_nav.paired`` says when its two sides were flown with different ones.
+ones that changed, and ``python -m shield_nav.paired`` says when its two sides were flown with different ones. The
+processor's SIMD extensions (:func:`cpu_simd`) are recorded and compared beside them: with the same packages, two
+processors that choose different kernels also fly a few trials differently (measured 2026-12-01, lab log).
 """
 
 from __future__ import annotations
@@ -12,7 +14,16 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 
-__all__ = ["PACKAGES", "cpu_model", "format_differences", "package_versions", "version_differences"]
+__all__ = [
+    "PACKAGES",
+    "SIMD_FLAGS",
+    "cpu_model",
+    "cpu_simd",
+    "format_differences",
+    "manifest_record",
+    "package_versions",
+    "version_differences",
+]
 
 #: The distributions whose arithmetic a flight or a training step goes through (their PyPI names).
 PACKAGES = (
@@ -56,6 +67,40 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor()
+
+
+#: The ``/proc/cpuinfo`` flags of the SIMD extensions numeric libraries choose kernels by, in the order recorded.
+SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni",
+              "avx512_bf16", "amx_tile", "asimd", "sve")  # fmt: skip
+
+
+def cpu_simd() -> str | None:
+    """The :data:`SIMD_FLAGS` the first processor of ``/proc/cpuinfo`` reports, space-separated in that order.
+
+    ``""`` where it reports none of them; None where there is no ``/proc/cpuinfo`` flags line (not Linux). The
+    model name does not tell these apart (two machines both named "AMD EPYC" differed, 2026-12-01).
+    """
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith(("flags", "Features")):
+                    have = set(line.split(":", 1)[1].split())
+                    return " ".join(flag for flag in SIMD_FLAGS if flag in have)
+    except OSError:
+        pass
+    return None
+
+
+def manifest_record(manifest: dict) -> dict | None:
+    """What an ``eval.py`` manifest records of its arithmetic: its ``packages`` plus ``cpu_simd`` where recorded.
+
+    None for a manifest written before package versions were recorded; a manifest written before ``cpu_simd`` was
+    recorded gives its packages alone, so :func:`version_differences` does not report the unknown as different.
+    """
+    packages = manifest.get("packages")
+    if not isinstance(packages, dict):
+        return None
+    return {**packages, **({"cpu_simd": manifest["cpu_simd"]} if "cpu_simd" in manifest else {})}
 
 
 def version_differences(a: dict | None, b: dict | None) -> dict[str, list]:

@@ -43,7 +43,14 @@ from shield_nav.evaluation.rollout import (
     unit_key,
 )
 from shield_nav.jsonio import json_default, write_json
-from shield_nav.provenance import cpu_model, format_differences, package_versions, version_differences
+from shield_nav.provenance import (
+    cpu_model,
+    cpu_simd,
+    format_differences,
+    manifest_record,
+    package_versions,
+    version_differences,
+)
 
 
 def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prepared:
@@ -228,11 +235,11 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
                 "the same command. Use another --out or delete the folder."
             )
-        changed = version_differences(old.get("packages"), package_versions())
+        changed = version_differences(manifest_record(old), {**package_versions(), "cpu_simd": cpu_simd()})
         if changed:
-            print(f"[eval] resuming {out_dir!r} with other package versions than its first units were flown with "
-                  f"({format_differences(changed)}): the units flown from now on may differ trial by trial from "
-                  "what the first environment would have flown (docs/evaluation.md, 'Reproducing a table')",
+            print(f"[eval] resuming {out_dir!r} with other package versions (or SIMD extensions) than its first units "
+                  f"were flown with ({format_differences(changed)}): the units flown from now on may differ trial by "
+                  "trial from what the first environment would have flown (docs/evaluation.md, 'Reproducing a table')",
                   file=sys.stderr)  # fmt: skip
         return
     manifest = {
@@ -244,6 +251,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
         "python": platform.python_version(),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
         "cpu": cpu_model(),
+        "cpu_simd": cpu_simd(),
         "packages": package_versions(),
         "checkpoints": {k: dataclasses.asdict(v) for k, v in prep.policies.items()},
         "missing_rows": prep.missing,

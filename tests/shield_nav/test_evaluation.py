@@ -19,6 +19,7 @@ import yaml
 
 from shield_nav import evaluation as E
 from shield_nav.baselines import TrackingConfig, accel_to_command, free_distances
+from shield_nav.provenance import cpu_simd
 from shield_nav.shield import ShieldConfig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -292,7 +293,7 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
         man = json.load(f)
     assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0
     assert man["packages"]["numpy"] == np.__version__ and man["packages"]["mujoco"] == mujoco.__version__
-    assert isinstance(man["cpu"], str)
+    assert isinstance(man["cpu"], str) and man["cpu_simd"] == cpu_simd()
     # Each recorded trajectory point is x, y, z, speed, heading; the first heading is the trial's start yaw.
     with open(os.path.join(out1, "units", "goal_seeking__ablation-07__v9.json")) as f:
         unit_trials = json.load(f)["trials"]
@@ -357,6 +358,14 @@ def test_resume_with_other_package_versions_names_them(tmp_path, monkeypatch, ca
         json.dump(man, f)
     E.evaluate(tiny_cfg(), out, progress=False)
     assert f"numpy 1.0.0 / {np.__version__}" in capsys.readouterr().err
+    # Another processor's SIMD extensions with the same packages are named too (2026-12-01: they move trials).
+    man["packages"]["numpy"] = np.__version__
+    man["cpu_simd"] = "sse4_2 no-such-extension"
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    E.evaluate(tiny_cfg(), out, progress=False)
+    err = capsys.readouterr().err
+    assert "cpu_simd sse4_2 no-such-extension / " in err and "numpy" not in err
 
 
 def test_resume_of_a_folder_written_before_a_config_key_existed(tmp_path, monkeypatch, capsys):

@@ -145,6 +145,11 @@ def test_report_names_the_packages_the_two_sides_were_flown_with_when_they_diffe
     (tmp_path / "a" / "manifest.json").write_text(json.dumps(man))
     main([a, b])
     assert "package versions" not in capsys.readouterr().out
+    # The same packages on two processors with different SIMD extensions: named; on one side only: unknown, not named.
+    (tmp_path / "a" / "manifest.json").write_text(json.dumps({**man, "cpu_simd": "avx avx2 fma"}))
+    assert compare(a, b)["package_differences"] == {}
+    (tmp_path / "b" / "manifest.json").write_text(json.dumps({**man, "cpu_simd": "avx avx2 fma avx512f"}))
+    assert compare(a, b)["package_differences"] == {"cpu_simd": ["avx avx2 fma", "avx avx2 fma avx512f"]}
 
 
 def test_plain_report_counts_flights_over_the_tops_and_warns_when_they_carry_the_lead(tmp_path, capsys):

@@ -7,7 +7,16 @@ import numpy as np
 import scipy
 import torch
 
-from shield_nav.provenance import PACKAGES, cpu_model, format_differences, package_versions, version_differences
+from shield_nav.provenance import (
+    PACKAGES,
+    SIMD_FLAGS,
+    cpu_model,
+    cpu_simd,
+    format_differences,
+    manifest_record,
+    package_versions,
+    version_differences,
+)
 
 
 def test_package_versions_are_the_imported_modules_own():
@@ -49,3 +58,30 @@ def test_cpu_model_is_the_first_model_name_of_proc_cpuinfo():
         assert cpu_model() == names[0] != ""
     else:  # not Linux: whatever the platform module says, a string
         assert cpu_model() == platform.processor()
+
+
+def test_cpu_simd_is_the_known_flags_of_proc_cpuinfo_in_order():
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((ln.split(":", 1)[1].split() for ln in f if ln.startswith(("flags", "Features"))), None)
+    except OSError:
+        flags = None
+    if flags is None:
+        assert cpu_simd() is None
+        return
+    got = cpu_simd().split()
+    assert got == [f for f in SIMD_FLAGS if f in flags]  # the recorded order, only known flags
+    assert set(got) <= set(flags)
+
+
+def test_manifest_record_adds_simd_only_where_recorded():
+    pk = {"python": "3.11.7", "numpy": "2.4.6"}
+    assert manifest_record({"packages": pk, "cpu_simd": "avx avx2 fma"}) == {**pk, "cpu_simd": "avx avx2 fma"}
+    old = manifest_record({"packages": pk})  # written before cpu_simd was recorded
+    assert old == pk and manifest_record({}) is None
+    # Unknown is not different; a known other processor is.
+    assert version_differences(old, {**pk, "cpu_simd": "avx avx2"}) == {}
+    new = {**pk, "cpu_simd": "avx avx2 fma avx512f"}
+    assert version_differences(manifest_record({"packages": pk, "cpu_simd": "avx avx2 fma"}), new) == {
+        "cpu_simd": ["avx avx2 fma", "avx avx2 fma avx512f"]
+    }

@@ -6,7 +6,8 @@ the edge of a collision or of the time limit then ends the other way (how often:
 table"). So every ``eval.py`` manifest and every checkpoint records these versions, a resumed evaluation names the
 ones that changed, and ``python -m shield_nav.paired`` says when its two sides were flown with different ones. The
 processor's SIMD extensions (:func:`cpu_simd`) are recorded and compared beside them: with the same packages, two
-processors that choose different kernels also fly a few trials differently (measured 2026-12-01, lab log).
+machines flew a few trials differently (2026-12-01, docs/evaluation.md); numba compiles for the processor and numpy,
+MuJoCo and torch choose kernels by it.
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(summary["header"]))
     print()
     print(summary["paper_table"])
-    print(f"\nwritten to {out}/ (table.md, table.csv, table.tex, trials.json, summary.json, figures/)")
+    print(f"\nwritten to {out}/ (table.md, table.csv, table.tex, trials.json, outcomes.csv.gz, summary.json, figures/)")
     if args.video:
         from shield_nav.evaluation import prepare, record_videos
 

@@ -15,6 +15,9 @@ seeds, starts or goals differ (different ``--seed`` or scenes), and reports:
 * the exact two-sided McNemar test: under "A and B are equally good" each discordant pair is a fair coin, so
   ``p = min(1, 2 P(X <= min(a_only, b_only)))`` with ``X ~ Binomial(a_only + b_only, 1/2)``.
 
+An ``OUT_DIR`` is an ``eval.py`` output with its ``units/``, or a kept run (``docs/data/``) with its
+``outcomes.csv.gz`` (:mod:`shield_nav.evaluation.outcomes`).
+
 Trials repeat bit for bit only with the same package versions (``shield_nav.provenance``): when the two sides' manifests
 record different ones, the report names them, since some discordant pairs are then floating-point divergence rather
 than a difference between the rows (docs/evaluation.md, "Reproducing a table").
@@ -41,6 +44,7 @@ import os
 from typing import Any
 
 from shield_nav.evaluation import wilson_interval
+from shield_nav.evaluation.outcomes import OUTCOMES_FILE, read_outcomes
 from shield_nav.provenance import format_differences, manifest_record, version_differences
 
 __all__ = [
@@ -73,18 +77,27 @@ def row_trials(spec: str, speeds: list[float] | None = None) -> dict[tuple, dict
     if not sep or not out_dir or not row:
         raise ValueError(f"expected OUT_DIR:ROW, got {spec!r}")
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
-    if not files:
-        raise FileNotFoundError(f"no unit files under {os.path.join(out_dir, 'units')!r}: not an eval.py output")
+    kept = os.path.join(out_dir, OUTCOMES_FILE)
     found: dict[tuple, dict] = {}
-    for path in files:
-        with open(path) as fh:
-            unit = json.load(fh)
-        if unit["row"] != row or (speeds and float(unit["speed"]) not in speeds):
-            continue
-        for t in unit["trials"]:
-            found[(unit["family"], int(unit["scene"]), float(unit["speed"]), int(t["trial"]))] = t
-    if not found:
+    if files:
+        for path in files:
+            with open(path) as fh:
+                unit = json.load(fh)
+            if unit["row"] != row or (speeds and float(unit["speed"]) not in speeds):
+                continue
+            for t in unit["trials"]:
+                found[(unit["family"], int(unit["scene"]), float(unit["speed"]), int(t["trial"]))] = t
         rows = sorted({os.path.basename(f).split("__")[0] for f in files})
+    elif os.path.isfile(kept):  # a kept run (docs/data/): its trials' outcomes without the unit files
+        records = read_outcomes(kept)
+        for t in records:
+            if t["row"] == row and not (speeds and t["speed"] not in speeds):
+                found[(t["family"], t["scene"], t["speed"], t["trial"])] = t
+        rows = sorted({t["row"] for t in records})
+    else:
+        raise FileNotFoundError(f"no unit files under {os.path.join(out_dir, 'units')!r} and no {OUTCOMES_FILE} in "
+                                f"{out_dir!r}: not an eval.py output")  # fmt: skip
+    if not found:
         raise ValueError(f"no trials of row {row!r} in {out_dir!r}" + (f" at speeds {speeds}" if speeds else "")
                          + f"; its rows: {', '.join(rows)}")  # fmt: skip
     return found

@@ -31,6 +31,7 @@ from shield_nav.evaluation.config import (
     row_shield_config,
 )
 from shield_nav.evaluation.metrics import aggregate
+from shield_nav.evaluation.outcomes import write_outcomes
 from shield_nav.evaluation.policies import POLICY_FILES, PolicyInfo, check_layout, load_policy, load_teacher
 from shield_nav.evaluation.report import _header_lines, csv_table, detail_table, latex_table, paper_table
 from shield_nav.evaluation.rollout import (
@@ -383,7 +384,7 @@ def summarize(prep: Prepared, unit_results: list[dict]) -> dict:
 
 
 def write_outputs(prep: Prepared, out_dir: str, units: list[UnitSpec]) -> dict:
-    """Tables (md, csv, tex), trials.json, summary.json and figures from the unit files on disk."""
+    """Tables (md, csv, tex), trials.json, outcomes.csv.gz, summary.json and figures from the unit files on disk."""
     results = load_units(out_dir, units)
     summary = summarize(prep, results)
     header = _header_lines(prep, summary)
@@ -399,6 +400,7 @@ def write_outputs(prep: Prepared, out_dir: str, units: list[UnitSpec]) -> dict:
         f.write(latex_table(prep, summary) + "\n")
     trials = [{k: v for k, v in t.items() if k != "traj"} for u in results for t in u["trials"]]
     write_json(os.path.join(out_dir, "trials.json"), trials)
+    write_outcomes(out_dir, results)
     write_json(os.path.join(out_dir, "summary.json"), summary)
     summary["markdown"] = md
     summary["paper_table"] = paper_table(prep, summary)

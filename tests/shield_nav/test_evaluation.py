@@ -19,6 +19,7 @@ import yaml
 
 from shield_nav import evaluation as E
 from shield_nav.baselines import TrackingConfig, accel_to_command, free_distances
+from shield_nav.evaluation.outcomes import read_outcomes
 from shield_nav.provenance import cpu_simd
 from shield_nav.shield import ShieldConfig
 
@@ -289,6 +290,11 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     with open(os.path.join(out1, "trials.json")) as f:
         trials = json.load(f)
     assert len(trials) == 2 and {"seed", "start", "goal", "outcome", "metrics", "scene"} <= set(trials[0])
+    # The kept-trials file holds each trial's pinning keys and outcome, as trials.json does.
+    kept = read_outcomes(os.path.join(out1, "outcomes.csv.gz"))
+    pick = ("row", "scene", "trial", "seed", "outcome", "steps")
+    assert [{k: r[k] for k in pick} for r in kept] == [{k: t[k] for k in pick} for t in trials]
+    assert [r["metrics"]["flew_over"] for r in kept] == [t["metrics"]["flew_over"] for t in trials]
     with open(os.path.join(out1, "manifest.json")) as f:
         man = json.load(f)
     assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0

@@ -183,3 +183,53 @@ def test_plain_report_counts_flights_over_the_tops_and_warns_when_they_carry_the
     _write(tmp_path / "e", "bare", [s, s, s, s, s, c])
     bare = compare(a, f"{tmp_path / 'e'}:bare")
     assert bare["b_over"] is None and over_tops_note(bare) is None
+
+
+def test_a_kept_outcomes_file_pairs_like_the_unit_files_it_was_written_from(tmp_path):
+    """docs/data keeps a run's outcomes.csv.gz without its unit files: paired reads it to the same comparison, and
+    still refuses trials whose seeds differ."""
+    import gzip
+    import shutil
+    from pathlib import Path
+
+    from shield_nav.evaluation.outcomes import OUTCOMES_FILE, read_outcomes, write_outcomes
+
+    s, c, t = "success", "collision", "timeout"
+    _write(tmp_path / "a", "old", [s, s, c, t, c, s], over=[0, 1, 0, 0, 0, 0])
+    _write(tmp_path / "a", "old", [s, c], speed=5.0, scene=2)
+    _write(tmp_path / "b", "new", [s, c, s, s, s, s])
+    units = [json.loads(p.read_text()) for p in sorted((tmp_path / "a" / "units").glob("*.json"))]
+    for u in units:
+        for j, trial in enumerate(u["trials"]):
+            trial["steps"] = 100 + j
+    path = write_outcomes(str(tmp_path / "a"), units)
+    with gzip.open(path, "rt") as f:
+        lines = f.read().splitlines()
+    # Hand-written: the header, then one line per trial in unit order (scene 0 at 3 m/s, then scene 2 at 5 m/s,
+    # which records no flew_over).
+    assert lines[0] == "row,family,scene,speed,trial,seed,outcome,steps,flew_over"
+    assert lines[2] == "old,ablation,0,3.0,1,101,success,101,1.0"
+    assert lines[7] == "old,ablation,2,5.0,0,100,success,100," and len(lines) == 1 + 8
+    assert read_outcomes(path)[1]["metrics"] == {"flew_over": 1.0} and read_outcomes(path)[6]["metrics"] == {}
+    before = compare(f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new")
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    shutil.copy(path, kept / OUTCOMES_FILE)
+    after = compare(f"{kept}:old", f"{tmp_path / 'b'}:new")
+    counts = ("n", "a_only", "b_only")
+    assert [after[k] for k in counts] == [before[k] for k in counts] == [6, 1, 3]
+    assert after["a_success"] == before["a_success"]
+    # flew_over comes back: below the tops, the kept side's 3 m/s successes are 2 of 6, as from its unit files.
+    tops = compare(f"{kept}:old", f"{tmp_path / 'a'}:old", below_tops=True, speeds=[3.0])
+    assert tops["a_success"] == tops["b_success"] == pytest.approx(2 / 6) and tops["a_only"] == tops["b_only"] == 0
+    # The same bytes for the same trials (zero gzip time stamp).
+    again = write_outcomes(str(kept), units)
+    assert (kept / OUTCOMES_FILE).read_bytes() == Path(path).read_bytes() and again.endswith(OUTCOMES_FILE)
+    # Another seed is another trial: refused as from the unit files.
+    _write(tmp_path / "d", "new", [s, c], seed_offset=7)
+    with pytest.raises(ValueError, match="differs in 'seed'"):
+        compare(f"{kept}:old", f"{tmp_path / 'd'}:new")
+    with pytest.raises(ValueError, match="no row|no trials of row"):
+        compare(f"{kept}:nosuchrow", f"{tmp_path / 'b'}:new")
+    with pytest.raises(FileNotFoundError, match=OUTCOMES_FILE):
+        compare(f"{tmp_path / 'nothing'}:old", f"{tmp_path / 'b'}:new")

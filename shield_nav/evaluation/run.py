@@ -217,6 +217,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
     os.makedirs(os.path.join(out_dir, "units"), exist_ok=True)
     ident = _identity(prep)
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()
+    arithmetic = {"cpu_simd": cpu_simd(), "packages": package_versions()}  # what the flights' arithmetic ran on
     man_path = os.path.join(out_dir, "manifest.json")
     if os.path.exists(man_path):
         with open(man_path) as f:
@@ -236,7 +237,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
                 "the same command. Use another --out or delete the folder."
             )
-        changed = version_differences(manifest_record(old), {**package_versions(), "cpu_simd": cpu_simd()})
+        changed = version_differences(manifest_record(old), manifest_record(arithmetic))
         if changed:
             print(f"[eval] resuming {out_dir!r} with other package versions (or SIMD extensions) than its first units "
                   f"were flown with ({format_differences(changed)}): the units flown from now on may differ trial by "
@@ -252,8 +253,7 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
         "python": platform.python_version(),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
         "cpu": cpu_model(),
-        "cpu_simd": cpu_simd(),
-        "packages": package_versions(),
+        **arithmetic,
         "checkpoints": {k: dataclasses.asdict(v) for k, v in prep.policies.items()},
         "missing_rows": prep.missing,
         **ident,

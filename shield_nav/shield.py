@@ -25,12 +25,13 @@ import numpy as np
 import qpsolvers
 import scipy.sparse as sp
 
-from envs.camera import CameraConfig, depth_to_points, voxel_keys
+from envs.camera import CameraConfig, depth_to_points
 from envs.config import require
 from shield_nav.shield_rows import (
     _accel_from_command_1,
     _append_remembered,
     _command_from_accel_1,
+    _map_merge,
     _min_margin,
     _rows_min_margin,
     _select,
@@ -79,6 +80,8 @@ _NEG_E3 = -_E3
 _NO_ROWS, _NO_RHS = np.zeros((0, 3)), np.zeros(0)
 _PLANE_EPS = 1.0e-3  # [m/s^2] an altitude row's right-hand side stays this far inside the actuator range
 _ZERO3 = np.zeros(3)
+_EMPTY_POINTS = np.zeros((0, 3))  # a vehicle's local map before its first intake
+_EMPTY_STAMPS = np.zeros(0, dtype=np.int64)
 _EYE3 = np.eye(3)
 
 
@@ -592,35 +595,35 @@ class HOCBFShield:
         m = self._map.get(int(vid))
         return np.zeros((0, 3)) if m is None else m[0].copy()
 
-    def _with_map(self, vid: int, pts: np.ndarray, n_img: int, p: np.ndarray) -> np.ndarray:
+    def _with_map(self, vid: int, pts: np.ndarray, n_img: int, p: np.ndarray, in_cloud: bool) -> np.ndarray:
         """Merge this call's image points (``pts[:n_img]``) into ``vid``'s local map when due; the cloud plus the map.
 
         The intake takes the image's points within ``map_radius`` of ``p`` and inside ``z_window``; the merged set
-        keeps one point per ``map_voxel`` cube, the newest (the image's points come first, and ``np.unique``
-        returns each key's first index), and drops what is older than ``map_seconds`` or beyond ``map_radius``.
+        keeps one point per ``map_voxel`` cube, the newest, in cube-key order, and drops what is older than
+        ``map_seconds`` or beyond ``map_radius`` (``shield_rows._map_merge``). ``in_cloud``: ``pts`` is the first
+        rows of ``self._cloud``, so the map's points are written after them in place (the buffer grows if needed).
         """
         cfg = self.cfg
         calls = self._map_calls.get(vid, 0)
         self._map_calls[vid] = calls + 1
         m = self._map.get(vid)
         if calls % cfg.map_every == 0:
-            img = pts[:n_img]
-            r2 = cfg.map_radius * cfg.map_radius
-            z_lo, z_hi = cfg.z_window
-            new = img[(((img - p) ** 2).sum(axis=1) <= r2) & (img[:, 2] >= z_lo) & (img[:, 2] <= z_hi)]
-            stamps = np.full(len(new), calls, dtype=np.int64)
-            if m is not None:
-                old, old_st = m
-                keep = (calls - old_st <= round(cfg.map_seconds / cfg.control_dt)) & (
-                    ((old - p) ** 2).sum(axis=1) <= r2
-                )
-                new = np.concatenate((new, old[keep]))
-                stamps = np.concatenate((stamps, old_st[keep]))
-            _, first = np.unique(voxel_keys(new, cfg.map_voxel), return_index=True)
-            m = self._map[vid] = (new[first], stamps[first])
+            old, old_st = m if m is not None else (_EMPTY_POINTS, _EMPTY_STAMPS)
+            m = self._map[vid] = _map_merge(
+                np.ascontiguousarray(pts[:n_img]), old, old_st, p, cfg.map_radius * cfg.map_radius, cfg.z_window[0],
+                cfg.z_window[1], calls, round(cfg.map_seconds / cfg.control_dt), cfg.map_voxel,
+            )  # fmt: skip
         if m is None or not len(m[0]):
             return pts
-        return np.concatenate((pts, m[0]))
+        if not in_cloud:
+            return np.concatenate((pts, m[0]))
+        n, k = len(pts), len(m[0])
+        if n + k > len(self._cloud):
+            grown = np.empty((max(n + k, 2 * len(self._cloud)), 3))
+            grown[:n] = self._cloud[:n]
+            self._cloud = grown
+        self._cloud[n : n + k] = m[0]
+        return self._cloud[: n + k]
 
     # ------------------------------------------------------------------------------ batched
     def filter_env(self, env, command: np.ndarray, ids: np.ndarray | None = None,  # noqa: ANN001
@@ -688,7 +691,8 @@ class HOCBFShield:
             a_raw[i] = self._a_buf
             vid = int(ids[i]) if ids is not None else i
             ring = self._memory.get(vid) if self.cfg.memory_steps > 0 else None
-            if depth is not None and not self.cfg.voxel:
+            in_cloud = depth is not None and not self.cfg.voxel  # pts: the first rows of self._cloud
+            if in_cloud:
                 pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, out=self._cloud)
                 n_img = len(pts)
                 if ring is not None:  # the remembered points go right after the image's, in the same buffer
@@ -703,7 +707,7 @@ class HOCBFShield:
                     pts = np.concatenate((pts, ring[~np.isnan(ring[:, 0])]))
             p_i, v_i = pos_w[i], vel_w[i]
             if self.cfg.map_seconds > 0.0:
-                pts = self._with_map(vid, pts, n_img, np.asarray(p_i, dtype=np.float64))
+                pts = self._with_map(vid, pts, n_img, np.asarray(p_i, dtype=np.float64), in_cloud)
             lagged = None
             if lag > 0.0:
                 # The state the command will act on: the vehicle keeps its current acceleration for one lag.

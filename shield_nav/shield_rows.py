@@ -13,6 +13,7 @@ import math
 import numba as nb
 import numpy as np
 
+from envs.camera.pointcloud import _FIB, voxel_keys
 from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
 
 PASSING_MIN_SPEED = 0.5
@@ -623,3 +624,61 @@ def _append_remembered(ring: np.ndarray, out: np.ndarray, m: int) -> int:
             out[m, 0], out[m, 1], out[m, 2] = x, ring[i, 1], ring[i, 2]
             m += 1
     return m
+
+
+@nb.njit(cache=True, nogil=True)
+def _map_merge(img: np.ndarray, old: np.ndarray, old_st: np.ndarray, p: np.ndarray, r2: float, z_lo: float,
+               z_hi: float, calls: int, max_age: int, voxel: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The local map's intake (``HOCBFShield._with_map``): the merged points (M, 3) and their call stamps (M,).
+
+    Candidates: the image's points ``img`` within ``sqrt(r2)`` of ``p`` and inside [z_lo, z_hi] (stamped ``calls``),
+    then the old map's points no older than ``max_age`` calls and within ``sqrt(r2)``, in that order. Of each
+    ``voxel_keys`` cube the first candidate is kept (an image point before an old one: the newest wins), and the
+    kept points come out in increasing key order: the set and order of ``np.unique(keys, return_index=True)``'s
+    first indices, by a hash table and a sort of the kept keys only (the candidates repeat a cube several times).
+    """
+    n_img, n_old = img.shape[0], old.shape[0]
+    cand = np.empty((n_img + n_old, 3))
+    st = np.empty(n_img + n_old, dtype=np.int64)
+    n = 0
+    for i in range(n_img):
+        dx, dy, dz = img[i, 0] - p[0], img[i, 1] - p[1], img[i, 2] - p[2]
+        if dx * dx + dy * dy + dz * dz <= r2 and img[i, 2] >= z_lo and img[i, 2] <= z_hi:
+            cand[n, 0], cand[n, 1], cand[n, 2] = img[i, 0], img[i, 1], img[i, 2]
+            st[n] = calls
+            n += 1
+    for i in range(n_old):
+        dx, dy, dz = old[i, 0] - p[0], old[i, 1] - p[1], old[i, 2] - p[2]
+        if calls - old_st[i] <= max_age and dx * dx + dy * dy + dz * dz <= r2:
+            cand[n, 0], cand[n, 1], cand[n, 2] = old[i, 0], old[i, 1], old[i, 2]
+            st[n] = old_st[i]
+            n += 1
+    keys = voxel_keys(cand[:n], voxel)
+    size, bits = 1, 0
+    while size < 2 * n + 1:
+        size *= 2
+        bits += 1
+    table = np.full(size, -1, dtype=np.int64)  # slot -> index of its cube's first candidate
+    first = np.empty(n, dtype=np.int64)
+    m = 0
+    last_key = -1
+    for i in range(n):
+        key = keys[i]
+        if key == last_key:  # neighbouring pixels often share a cube, which is in the table already
+            continue
+        last_key = key
+        h = ((key * _FIB) >> (64 - bits)) & (size - 1)  # Fibonacci hashing, as voxel_downsample
+        while table[h] >= 0 and keys[table[h]] != key:
+            h = (h + 1) & (size - 1)
+        if table[h] < 0:
+            table[h] = i
+            first[m] = i
+            m += 1
+    order = np.argsort(keys[first[:m]])  # the kept keys are distinct: any sort gives np.unique's order
+    out = np.empty((m, 3))
+    out_st = np.empty(m, dtype=np.int64)
+    for j in range(m):
+        i = first[order[j]]
+        out[j, 0], out[j, 1], out[j, 2] = cand[i, 0], cand[i, 1], cand[i, 2]
+        out_st[j] = st[i]
+    return out, out_st

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from envs.camera import CameraConfig, DepthCamera
+from envs.camera import CameraConfig, DepthCamera, voxel_keys
 from envs.config import ConfigError, load_config
 from envs.scenes.primitives import Box
 from shield_nav.scripted import fly
@@ -27,6 +27,7 @@ from shield_nav.shield import (
     hocbf_rows,
     passing_rows,
 )
+from shield_nav.shield_rows import _map_merge
 
 G = 9.81
 P4 = {"barrier": "distance", "alpha0": 16.0, "alpha1": 8.0, "lag_s": 0.0, "r_safe": 0.5}
@@ -386,6 +387,63 @@ def test_local_map_thins_to_the_newest_point_per_cube_and_forgets_by_age_and_dis
     for k in range(4):
         every3.filter(cmd, at, vel, points_w=[np.array([[1.0 + k, 0.0, 1.5]])])
     np.testing.assert_allclose(np.sort(every3.map_points(0)[:, 0]), [1.0, 4.0])
+
+
+def _map_merge_numpy(img, old, old_st, p, r2, z_lo, z_hi, calls, max_age, voxel):
+    """The local map's intake as numpy writes it (the implementation before ``_map_merge``): the reference."""
+    new = img[(((img - p) ** 2).sum(axis=1) <= r2) & (img[:, 2] >= z_lo) & (img[:, 2] <= z_hi)]
+    keep = (calls - old_st <= max_age) & (((old - p) ** 2).sum(axis=1) <= r2)
+    new, stamps = np.concatenate((new, old[keep])), np.concatenate((np.full(len(new), calls), old_st[keep]))
+    _, first = np.unique(voxel_keys(new, voxel), return_index=True)
+    return new[first], stamps[first]
+
+
+def test_map_merge_by_hand():
+    # 0.5 m cubes, radius 3 m, 4 calls of age at call 10. Image: a and b share the cube (4, 0, 3) (a is first, so
+    # it is kept), c is beyond 3 m, d is below the z window. Old map: e shares a's cube (the image's point wins), f
+    # is 5 calls old (dropped), g is kept; the output is in cube-key order: (2, 1, 2) for g before (4, 0, 3) for a.
+    a, b, c, d = [2.10, 0.10, 1.60], [2.40, 0.45, 1.90], [3.5, 0.0, 1.5], [1.0, 0.0, 0.05]
+    e, f, g = [2.2, 0.2, 1.7], [0.6, 0.6, 1.2], [1.1, 0.7, 1.2]
+    pts, st = _map_merge(np.array([a, b, c, d]), np.array([e, f, g]), np.array([7, 5, 6]),
+                         np.array([0.0, 0.0, 1.5]), 9.0, 0.15, 10.0, 10, 4, 0.5)  # fmt: skip
+    np.testing.assert_array_equal(pts, [g, a])
+    np.testing.assert_array_equal(st, [6, 10])
+    empty, empty_st = _map_merge(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(3), 9.0, 0.15,
+                                 10.0, 0, 4, 0.5)  # fmt: skip
+    assert empty.shape == (0, 3) and empty_st.shape == (0,)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_img=st.integers(0, 400), n_old=st.integers(0, 300),
+       voxel=st.sampled_from([0.1, 0.2, 0.5]))  # fmt: skip
+def test_map_merge_equals_the_numpy_intake(seed, n_img, n_old, voxel):
+    # Clouds on a coarse lattice (so many points share a cube and sit exactly on the radius and the z window's
+    # edges) plus jitter: the same points, stamps and order as np.unique's first indices.
+    rng = np.random.default_rng(seed)
+    img = rng.integers(-16, 17, (n_img, 3)) * 0.25 + rng.choice([0.0, 1e-3], (n_img, 3))
+    old = rng.integers(-16, 17, (n_old, 3)) * 0.25 + rng.choice([0.0, 1e-3], (n_old, 3))
+    old_st = rng.integers(0, 30, n_old)
+    args = (np.array([0.25, -0.5, 0.5]), 9.0, 0.25, 3.0, 30, 12, voxel)
+    got, ref = _map_merge(img, old, old_st, *args), _map_merge_numpy(img, old, old_st, *args)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+
+
+def test_local_map_in_the_cloud_buffer_grows_and_matches_the_concatenation():
+    # A map larger than the room left in the shield's cloud buffer: the buffer grows, keeps the image's points, and
+    # the cloud equals the image's points followed by the map's.
+    sh = HOCBFShield(ShieldConfig(memory_steps=0, map_every=1, map_voxel=0.1))
+    sh._cloud = np.empty((10, 3))
+    img = np.stack((np.linspace(1.0, 4.0, 30), np.zeros(30), np.full(30, 1.5)), axis=1)  # 30 cubes of 0.1 m
+    sh._cloud[:4] = img[:4]
+    cloud = sh._with_map(0, sh._cloud[:4], 4, np.zeros(3), True)  # the map takes in the 4 image points
+    np.testing.assert_array_equal(cloud, np.concatenate((img[:4], img[:4])))
+    big = sh._with_map(0, img, 30, np.zeros(3), False)  # not in the buffer: concatenated; the map is now 30 points
+    np.testing.assert_array_equal(big, np.concatenate((img, img)))
+    sh._cloud[:4] = img[:4]
+    cloud = sh._with_map(0, sh._cloud[:4], 4, np.zeros(3), True)
+    assert len(sh._cloud) >= 34
+    np.testing.assert_array_equal(cloud, np.concatenate((img[:4], img)))
 
 
 def test_local_map_config_errors_name_the_key():

@@ -13,7 +13,7 @@ import math
 import numba as nb
 import numpy as np
 
-from envs.camera.pointcloud import _FIB, voxel_keys
+from envs.camera.pointcloud import key_slots, voxel_keys
 from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
 
 PASSING_MIN_SPEED = 0.5
@@ -635,7 +635,8 @@ def _map_merge(img: np.ndarray, old: np.ndarray, old_st: np.ndarray, p: np.ndarr
     then the old map's points no older than ``max_age`` calls and within ``sqrt(r2)``, in that order. Of each
     ``voxel_keys`` cube the first candidate is kept (an image point before an old one: the newest wins), and the
     kept points come out in increasing key order: the set and order of ``np.unique(keys, return_index=True)``'s
-    first indices, by a hash table and a sort of the kept keys only (the candidates repeat a cube several times).
+    first indices, by ``key_slots``'s hash table and a sort of the kept keys only (the candidates repeat a cube
+    several times).
     """
     n_img, n_old = img.shape[0], old.shape[0]
     cand = np.empty((n_img + n_old, 3))
@@ -654,27 +655,14 @@ def _map_merge(img: np.ndarray, old: np.ndarray, old_st: np.ndarray, p: np.ndarr
             st[n] = old_st[i]
             n += 1
     keys = voxel_keys(cand[:n], voxel)
-    size, bits = 1, 0
-    while size < 2 * n + 1:
-        size *= 2
-        bits += 1
-    table = np.full(size, -1, dtype=np.int64)  # slot -> index of its cube's first candidate
-    first = np.empty(n, dtype=np.int64)
-    m = 0
-    last_key = -1
+    slots, m = key_slots(keys)
+    first = np.empty(m, dtype=np.int64)  # each cube's first candidate: where its slot (numbered as first seen) appears
+    seen = 0
     for i in range(n):
-        key = keys[i]
-        if key == last_key:  # neighbouring pixels often share a cube, which is in the table already
-            continue
-        last_key = key
-        h = ((key * _FIB) >> (64 - bits)) & (size - 1)  # Fibonacci hashing, as voxel_downsample
-        while table[h] >= 0 and keys[table[h]] != key:
-            h = (h + 1) & (size - 1)
-        if table[h] < 0:
-            table[h] = i
-            first[m] = i
-            m += 1
-    order = np.argsort(keys[first[:m]])  # the kept keys are distinct: any sort gives np.unique's order
+        if slots[i] == seen:
+            first[seen] = i
+            seen += 1
+    order = np.argsort(keys[first])  # the kept keys are distinct: any sort gives np.unique's order
     out = np.empty((m, 3))
     out_st = np.empty(m, dtype=np.int64)
     for j in range(m):

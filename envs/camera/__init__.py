@@ -6,7 +6,7 @@ See ``docs/depth.md`` for the camera model, frames, the sensor model and benchma
 from envs.camera.config import CameraConfig, DepthNoiseConfig
 from envs.camera.model import R_bc, camera_poses, intrinsics, min_pool, normalize_depth, ray_dirs_c, ray_grid
 from envs.camera.noise import DepthNoise
-from envs.camera.pointcloud import depth_to_points, voxel_downsample, voxel_keys
+from envs.camera.pointcloud import depth_to_points, key_slots, voxel_downsample, voxel_keys
 from envs.camera.renderer import DepthCamera
 from envs.camera.viz import depth_to_rgb, save_depth_png, save_depth_strip
 
@@ -26,6 +26,7 @@ __all__ = [
     "ray_grid",
     "save_depth_png",
     "save_depth_strip",
+    "key_slots",
     "voxel_downsample",
     "voxel_keys",
 ]

@@ -87,39 +87,52 @@ def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 @nb.njit(**_NJIT)
-def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Centroid of the points (M, 3) in each occupied cubic voxel of edge ``voxel`` (m), in first-seen order.
+def key_slots(keys: np.ndarray) -> tuple[np.ndarray, int]:
+    """The slot (N,) of each int64 key, numbered 0, 1, ... in first-seen order, and the number of distinct keys.
 
-    Voxel of a point: its :func:`voxel_keys` key (voxel indices within +-2^20: +-10 km at 1 cm voxels); an
-    open-addressing hash table maps key -> slot.
+    An open-addressing hash table (Fibonacci hashing, linear probing); a key equal to the one before it skips the
+    lookup (neighbouring pixels often share a voxel). :func:`voxel_downsample` and the shield's local map group
+    points by their :func:`voxel_keys` with it.
     """
-    n = points.shape[0]
+    n = keys.shape[0]
     size, bits = 1, 0
     while size < 2 * n + 1:
         size *= 2
         bits += 1
-    keys = np.empty(size, dtype=np.int64)
-    slot = np.full(size, -1, dtype=np.int64)
-    acc = np.empty((n, 3))
-    cnt = np.empty(n, dtype=np.int64)
+    table_keys = np.empty(size, dtype=np.int64)
+    table_slot = np.full(size, -1, dtype=np.int64)
+    slots = np.empty(n, dtype=np.int64)
     m = 0
-    inv = 1.0 / voxel
-    last_key, j = -1, 0
+    last_key, j = -1, 0  # voxel keys are >= 0
     for i in range(n):
-        key = _voxel_key(points[i, 0], points[i, 1], points[i, 2], inv)
-        if key != last_key:  # neighbouring pixels often share a voxel: skip the lookup
+        key = keys[i]
+        if key != last_key:
             # Fibonacci hashing: top ``bits`` bits of key * 2^64 / golden ratio (int64 wrap-around intended).
             h = ((key * _FIB) >> (64 - bits)) & (size - 1)
-            while slot[h] >= 0 and keys[h] != key:
+            while table_slot[h] >= 0 and table_keys[h] != key:
                 h = (h + 1) & (size - 1)
-            if slot[h] < 0:
-                slot[h] = m
-                keys[h] = key
-                acc[m, 0], acc[m, 1], acc[m, 2] = 0.0, 0.0, 0.0
-                cnt[m] = 0
+            if table_slot[h] < 0:
+                table_slot[h] = m
+                table_keys[h] = key
                 m += 1
-            j = slot[h]
+            j = table_slot[h]
             last_key = key
+        slots[i] = j
+    return slots, m
+
+
+@nb.njit(**_NJIT)
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Centroid of the points (M, 3) in each occupied cubic voxel of edge ``voxel`` (m), in first-seen order.
+
+    Voxel of a point: its :func:`voxel_keys` key (voxel indices within +-2^20: +-10 km at 1 cm voxels), grouped by
+    :func:`key_slots`; each centroid sums its points in their order.
+    """
+    slots, m = key_slots(voxel_keys(points, voxel))
+    acc = np.zeros((m, 3))
+    cnt = np.zeros(m, dtype=np.int64)
+    for i in range(points.shape[0]):
+        j = slots[i]
         acc[j, 0] += points[i, 0]
         acc[j, 1] += points[i, 1]
         acc[j, 2] += points[i, 2]

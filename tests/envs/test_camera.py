@@ -16,6 +16,7 @@ from envs.camera import (
     camera_poses,
     depth_to_points,
     intrinsics,
+    key_slots,
     min_pool,
     normalize_depth,
     ray_dirs_c,
@@ -299,6 +300,18 @@ def test_points_drop_invalid_pixels_and_voxels_average():
         depth_to_points(depth, np.zeros(3), np.eye(3), cfg, out=np.empty((100, 3)))
     with pytest.raises(ValueError, match="out must be"):
         depth_to_points(depth, np.zeros(3), np.eye(3), cfg, voxel=0.5, out=buf)
+
+
+def test_key_slots_number_keys_in_first_seen_order():
+    # Keys 7, 7, 3, 9, 3, 7 (a repeat right after itself, and repeats later): slots 0, 0, 1, 2, 1, 0; 3 distinct.
+    slots, m = key_slots(np.array([7, 7, 3, 9, 3, 7], dtype=np.int64))
+    assert slots.tolist() == [0, 0, 1, 2, 1, 0] and m == 3
+    empty, m0 = key_slots(np.zeros(0, dtype=np.int64))
+    assert empty.shape == (0,) and m0 == 0
+    # Many keys that collide in the table's low bits: each distinct key still gets its own slot, in order.
+    keys = np.repeat(np.arange(500, dtype=np.int64) << 42, 3)[::-1].copy()
+    slots, m = key_slots(keys)
+    assert m == 500 and slots.tolist() == np.repeat(np.arange(500), 3).tolist()
 
 
 def test_voxel_keys_pack_cube_indices_by_hand():

@@ -60,6 +60,8 @@ def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> Shi
 
 
 POLICY_CONTROLLERS = ("policy", "teacher")
+NETWORKS = ("export", "fixed_order")
+"""Values of :attr:`EvalConfig.network`."""
 """Row controllers that run a checkpoint named by ``RowConfig.policy``."""
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -119,6 +121,12 @@ class EvalConfig:
     """Extra (or overriding) row definitions."""
     checkpoints: dict[str, str] = field(default_factory=lambda: dict(BUILTIN_CHECKPOINTS))
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""
+    network: str = "export"
+    """How a policy's network is run. ``export``: the exported file found (``policy.onnx`` through onnxruntime, else
+    TorchScript ``policy.pt``), with the processor's fastest kernels, whose sums differ in the last bits from one
+    processor kind to another. ``fixed_order``: the weights of the TorchScript export ``policy.pt`` run by
+    :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations, so a run repeats bit for bit
+    on any processor (docs/evaluation.md, "Reproducing a table")."""
     missing_checkpoints: str = "error"
     """``error``: a row whose checkpoint is missing stops the run. ``skip``: the row is shown as missing."""
     scenes: SceneSelection = field(default_factory=SceneSelection)
@@ -160,6 +168,7 @@ class EvalConfig:
         require(self.batch_size >= 1, f"{prefix}batch_size", "must be >= 1")
         require(self.workers >= 1, f"{prefix}workers", "must be >= 1")
         require(self.trajectory_every >= 1, f"{prefix}trajectory_every", "must be >= 1")
+        require(self.network in NETWORKS, f"{prefix}network", f"{self.network!r}; known: {list(NETWORKS)}")
         require(self.missing_checkpoints in ("error", "skip"), f"{prefix}missing_checkpoints",
                 "must be 'error' or 'skip'")  # fmt: skip
         require(len(self.configurations) >= 1, f"{prefix}configurations", "need at least one configuration")

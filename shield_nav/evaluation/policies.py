@@ -25,7 +25,8 @@ class PolicyInfo:
     path: str
     """The file that runs (``.onnx`` or TorchScript ``.pt``)."""
     kind: str
-    """``onnx`` or ``torchscript``."""
+    """``onnx``, ``torchscript`` or ``fixed_order`` (the TorchScript file's weights run by
+    :mod:`shield_nav.evaluation.fixed_order`)."""
     sha256: str
     """SHA-256 of that file."""
     obs_dim: int
@@ -75,6 +76,8 @@ class LoadedPolicy:
 
     def step(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One deterministic policy step for a batch (see the class docstring)."""
+        if self.info.kind == "fixed_order":  # float64 inside; the state and image arrive as the env gives them
+            return self._runner.act(np.asarray(state, dtype=np.float32), np.asarray(depth, dtype=np.float32), h)
         state = np.ascontiguousarray(state, dtype=np.float32)
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         if self.info.kind == "onnx":
@@ -93,6 +96,8 @@ class LoadedPolicy:
         """``K``, the candidate actions the actor scores (1 for a single-head actor, and for an ONNX export)."""
         if self.info.kind == "onnx":
             return 1
+        if self.info.kind == "fixed_order":
+            return int(self._runner.num_hypotheses)
         select = dict(self._runner.mlp.named_children()).get("1")  # HypothesisSelect after the MLP core, if any
         return int(select.num_hypotheses) if select is not None and hasattr(select, "num_hypotheses") else 1
 
@@ -110,6 +115,13 @@ class LoadedPolicy:
             why = "an ONNX export gives only its chosen action" if self.info.kind == "onnx" else "it has one head"
             raise EvalError(f"checkpoint {self.info.name!r} ({self.info.path}): the shield's 'hypotheses' option "
                             f"needs a multi-hypothesis actor's TorchScript export (policy.pt); {why}")  # fmt: skip
+        if self.info.kind == "fixed_order":
+            head, h_out = self._runner.forward(np.asarray(state, dtype=np.float32),
+                                               np.asarray(depth, dtype=np.float32), h)  # fmt: skip
+            cands, scores = self._runner.candidates(head)
+            order = np.argsort(-scores, axis=1, kind="stable")  # ties: the first, as HypothesisSelect
+            ranked = np.take_along_axis(cands, order[:, :, None], axis=1)
+            return ranked[:, 0], ranked[:, 1:], h_out
         import torch
 
         m = self._runner
@@ -239,17 +251,39 @@ def _dim(value: Any, what: str, path: str) -> int:
     return value
 
 
-def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
+def _find_torchscript(file: str, name: str) -> str:
+    """The TorchScript export that ``network: fixed_order`` reads.
+
+    ``file`` itself, or the ``policy.pt`` beside an ONNX file (or in an ``exported/`` folder beside it).
+    """
+    if file.endswith(".pt"):
+        return file
+    d = os.path.dirname(os.path.abspath(file))
+    for cand in (os.path.join(d, "policy.pt"), os.path.join(d, "exported", "policy.pt")):
+        if os.path.isfile(cand):
+            return cand
+    raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt, and there "
+                    f"is none beside {file!r}; point --checkpoint at a policy.pt or use network 'export'")  # fmt: skip
+
+
+def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "export") -> LoadedPolicy:
     """Load an exported actor (ONNX through onnxruntime, or TorchScript ``policy.pt``) and read its layout.
 
     ``path`` is a file or a folder holding ``policy.onnx`` / ``exported/policy.onnx`` / ``policy.pt``. The ONNX
     graph's inputs are told apart by rank (state (B, S), depth (B, C, H, W), hidden (L, B, Hd)) and its outputs
-    by rank (actions (B, A), hidden), so the names are read from the model rather than assumed.
+    by rank (actions (B, A), hidden), so the names are read from the model rather than assumed. With ``network``
+    ``fixed_order`` the TorchScript export's weights are run by :class:`~shield_nav.evaluation.fixed_order.
+    FixedOrderActor` instead (the ``policy.pt`` beside an ONNX file).
 
     Raises:
-        EvalError: missing file, a training checkpoint instead of an export, or an unreadable model.
+        EvalError: missing file, a training checkpoint instead of an export, an unreadable model, or a network the
+            fixed-order runtime does not run.
     """
     file = _find_policy_file(os.fspath(path), name)
+    if network == "fixed_order":
+        file = _find_torchscript(file, name)
+    elif network != "export":
+        raise EvalError(f"network: {network!r}; known: 'export', 'fixed_order'")
     cfg_path = _find_train_config(file)
     speeds = _speeds_from_config(cfg_path)
     train_env = _env_from_config(cfg_path)
@@ -293,9 +327,17 @@ def load_policy(path: str | os.PathLike, name: str = "policy") -> LoadedPolicy:
     except Exception:
         raise EvalError(f"checkpoint {name!r}: {file!r} lacks obs_dim/depth_shape/num_layers/hidden_size") from None
     mod.eval()
-    info = PolicyInfo(name, file, "torchscript", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
+    kind, runner = "torchscript", mod
+    if network == "fixed_order":
+        from shield_nav.evaluation.fixed_order import FixedOrderActor
+
+        try:
+            kind, runner = "fixed_order", FixedOrderActor(mod, file)
+        except ValueError as err:
+            raise EvalError(f"checkpoint {name!r}: {err}") from None
+    info = PolicyInfo(name, file, kind, _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
                       cfg_path, speeds, train_env, groups)  # fmt: skip
-    return LoadedPolicy(info, mod)
+    return LoadedPolicy(info, runner)
 
 
 def _torch_file_problem(file: str, name: str, err: Exception) -> str:

@@ -123,13 +123,13 @@ def scene_seed(cfg: EvalConfig) -> int | None:
     return nav_config(cfg, cfg.scenes.family, cfg.scene_indices[0], cfg.speeds[0], 1).scenes.seed
 
 
-_POLICY_CACHE: dict[str, LoadedPolicy] = {}
+_POLICY_CACHE: dict[tuple[str, str], LoadedPolicy] = {}
 
 
-def _policy(path: str) -> LoadedPolicy:
-    if path not in _POLICY_CACHE:
-        _POLICY_CACHE[path] = load_policy(path)
-    return _POLICY_CACHE[path]
+def _policy(path: str, network: str = "export") -> LoadedPolicy:
+    if (path, network) not in _POLICY_CACHE:
+        _POLICY_CACHE[(path, network)] = load_policy(path, network=network)
+    return _POLICY_CACHE[(path, network)]
 
 
 _TEACHER_CACHE: dict[str, LoadedTeacher] = {}
@@ -164,7 +164,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     teacher: LoadedTeacher | None = None
     ctrl: Controller | None = None
     if row.controller == "policy":
-        policy = _policy(spec.policy_path)  # type: ignore[arg-type]
+        policy = _policy(spec.policy_path, cfg.network)  # type: ignore[arg-type]
         h = policy.initial_state(n)
     elif row.controller == "teacher":
         teacher = _teacher(spec.policy_path)  # type: ignore[arg-type]

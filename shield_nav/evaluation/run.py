@@ -75,8 +75,10 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
         if pname not in cfg.checkpoints:
             raise EvalError(f"no checkpoint path for policy {pname!r}; give --checkpoint {pname}=PATH")
         try:
-            loader = load_teacher if needed[pname] == "teacher" else load_policy
-            pol = loader(cfg.checkpoints[pname], pname)
+            if needed[pname] == "teacher":
+                pol = load_teacher(cfg.checkpoints[pname], pname)
+            else:
+                pol = load_policy(cfg.checkpoints[pname], pname, network=cfg.network)
             choosing = [rn for rn, r in rows.items() if r.policy == pname and r.controller == "policy" and r.shield
                         and row_shield_config(cfg.shield, r, rn).hypotheses != "top"]  # fmt: skip
             if choosing:

@@ -1,0 +1,358 @@
+"""The exported depth actor run in a fixed order of floating-point operations (``network: fixed_order``).
+
+onnxruntime and torch pick their convolution and matrix kernels by the processor's vector extensions, and each kernel
+sums its products in its own order: the same policy file gives actions that differ in the last bits from one
+processor kind to another, and closed-loop flight grows such differences into other trajectories (13-16 of 100
+trials end otherwise when only the network's kernels change; docs/evaluation.md, "Reproducing a table"). This module
+runs the same weights (read from the TorchScript export ``policy.pt``) with plain loops compiled by numba without
+``fastmath``: every sum runs in one written order in float64, no operation is fused or reassociated, and the
+exponential is this module's own polynomial (libm's may differ between its FMA and non-FMA variants). So the
+actions are the same bits on every processor numba compiles for; the test suite checks that a baseline x86-64 build
+(``NUMBA_CPU_NAME=generic``) gives the host build's bits.
+
+The layers are those of :class:`shield_nav.models.DepthGRUModel` exports: the state normaliser, the convolution stack
+(``Conv2d``, ``ReLU``, ``MaxPool2d(2)``), ``Flatten -> Linear -> ReLU``, a GRU (any number of layers, PyTorch's gate
+equations), the MLP head (``Linear`` with ``ELU`` / ``ReLU`` / ``Tanh``) and the multi-hypothesis selection. Anything
+else is refused by name when the file is loaded.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+
+_LN2_HI = 6.93147180369123816490e-01  # ln 2 split so that k * _LN2_HI is exact for |k| < 2^20 (fdlibm's split)
+_LN2_LO = 1.90821492927058770002e-10
+_INV_LN2 = 1.44269504088896338700e00
+# 1 / j! for j = 0..13: the Taylor series of exp on |r| <= ln(2) / 2 to below 1e-17 relative.
+_EXP_COEFFS = np.array([1.0 / math.factorial(j) for j in range(14)])
+
+
+@numba.njit(cache=True)
+def fixed_exp(x: float) -> float:
+    """``exp(x)`` in float64 from additions and multiplications only (relative error about 2e-16).
+
+    ``x = k ln 2 + r`` with integer ``k`` and ``|r| <= ln(2) / 2`` (Cody-Waite reduction), ``exp(r)`` by its Taylor
+    series to degree 13 in Horner form, then the exact scaling by ``2^k``.
+    """
+    if x != x:
+        return x
+    if x > 709.0:
+        return np.inf
+    if x < -745.0:
+        return 0.0
+    k = math.floor(x * _INV_LN2 + 0.5)
+    r = (x - k * _LN2_HI) - k * _LN2_LO
+    p = _EXP_COEFFS[13]
+    for j in range(12, -1, -1):
+        p = p * r + _EXP_COEFFS[j]
+    return math.ldexp(p, int(k))
+
+
+@numba.njit(cache=True)
+def _sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + fixed_exp(-x))
+
+
+@numba.njit(cache=True)
+def _tanh(x: float) -> float:
+    if x > 20.0:
+        return 1.0
+    if x < -20.0:
+        return -1.0
+    e = fixed_exp(2.0 * x)
+    return (e - 1.0) / (e + 1.0)
+
+
+@numba.njit(cache=True)
+def _im2col(x: np.ndarray, k: int, stride: int, pad: int, ho: int, wo: int, out: np.ndarray) -> None:
+    """Patches of ``x`` (C, N, H, W) as columns of ``out`` (C * k * k, N * ho * wo).
+
+    Row (c, ky, kx), the order of ``nn.Conv2d``'s weights; the zero padding as zeros.
+    """
+    c_in, n_b, h, wd = x.shape
+    row = 0
+    for c in range(c_in):
+        for ky in range(k):
+            for kx in range(k):
+                dst = out[row]
+                for i in range(n_b):
+                    for oy in range(ho):
+                        iy = oy * stride - pad + ky
+                        base = (i * ho + oy) * wo
+                        for ox in range(wo):
+                            ix = ox * stride - pad + kx
+                            dst[base + ox] = x[c, i, iy, ix] if 0 <= iy < h and 0 <= ix < wd else 0.0
+                row += 1
+
+
+@numba.njit(cache=True)
+def _conv_rows(cols: np.ndarray, w: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out[o] = b[o] + sum over j of w[o, j] cols[j]``: the convolution as one product.
+
+    Each output's sum runs from the first patch row to the last. Four output channels share each pass over a patch
+    row, and the innermost loop runs over pixels: neighbouring pixels are summed side by side in separate
+    accumulators, none reassociated.
+    """
+    n_out, n_in = w.shape
+    r = cols.shape[1]
+    o = 0
+    while o < n_out:
+        m = min(4, n_out - o)
+        d0, d1, d2, d3 = out[o], out[o + min(1, m - 1)], out[o + min(2, m - 1)], out[o + min(3, m - 1)]
+        for q in range(r):
+            d0[q] = b[o]
+        if m == 4:
+            for q in range(r):
+                d1[q] = b[o + 1]
+                d2[q] = b[o + 2]
+                d3[q] = b[o + 3]
+            for j in range(n_in):
+                w0, w1, w2, w3 = w[o, j], w[o + 1, j], w[o + 2, j], w[o + 3, j]
+                src = cols[j]
+                for q in range(r):
+                    v = src[q]
+                    d0[q] += w0 * v
+                    d1[q] += w1 * v
+                    d2[q] += w2 * v
+                    d3[q] += w3 * v
+        else:  # the last channels one at a time
+            for t in range(m):
+                dst = out[o + t]
+                for q in range(r):
+                    dst[q] = b[o + t]
+                for j in range(n_in):
+                    wv = w[o + t, j]
+                    src = cols[j]
+                    for q in range(r):
+                        dst[q] += wv * src[q]
+        o += m
+
+
+@numba.njit(cache=True)
+def _max_pool2(x: np.ndarray, out: np.ndarray) -> None:
+    """2 x 2 max pooling, stride 2, no padding, of ``x`` (C, N, H, W) (odd sizes floored, as ``nn.MaxPool2d(2)``)."""
+    c, n_b, ho, wo = out.shape
+    for o in range(c):
+        for i in range(n_b):
+            for y in range(ho):
+                for xx in range(wo):
+                    a = x[o, i, 2 * y, 2 * xx]
+                    for v in (x[o, i, 2 * y, 2 * xx + 1], x[o, i, 2 * y + 1, 2 * xx], x[o, i, 2 * y + 1, 2 * xx + 1]):
+                        if v > a or v != v:
+                            a = v
+                    out[o, i, y, xx] = a
+
+
+@numba.njit(cache=True)
+def _affine(x: np.ndarray, w_t: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out[n] = b + sum over j of x[n, j] w_t[j]``, each output's sum from the first input to the last.
+
+    ``w_t`` is the weight transposed (inputs, outputs), so the innermost loop runs over outputs side by side.
+    """
+    n_b, n_in = x.shape
+    for i in range(n_b):
+        acc = out[i]
+        acc[:] = b
+        for j in range(n_in):
+            xv = x[i, j]
+            wrow = w_t[j]
+            for o in range(acc.shape[0]):
+                acc[o] += xv * wrow[o]
+
+
+@numba.njit(cache=True)
+def _activate(y: np.ndarray, act: int) -> None:
+    """In place: act 1 ReLU, 2 ELU, 3 tanh (0: none)."""
+    n_b, n = y.shape
+    for i in range(n_b):
+        for o in range(n):
+            v = y[i, o]
+            if act == 1:
+                y[i, o] = v if v > 0.0 else 0.0
+            elif act == 2:
+                y[i, o] = v if v > 0.0 else fixed_exp(v) - 1.0
+            elif act == 3:
+                y[i, o] = _tanh(v)
+
+
+@numba.njit(cache=True)
+def _gru_gates(gi: np.ndarray, gh: np.ndarray, h: np.ndarray, out: np.ndarray) -> None:
+    """PyTorch's GRU update from the input and hidden projections (gates ordered r, z, n)."""
+    n_b, hd = h.shape
+    for i in range(n_b):
+        for j in range(hd):
+            r = _sigmoid(gi[i, j] + gh[i, j])
+            z = _sigmoid(gi[i, hd + j] + gh[i, hd + j])
+            nn = _tanh(gi[i, 2 * hd + j] + r * gh[i, 2 * hd + j])
+            out[i, j] = (1.0 - z) * nn + z * h[i, j]
+
+
+ACTIVATIONS = {"ReLU": 1, "ELU": 2, "Tanh": 3}
+"""MLP activations the fixed-order actor runs (code passed to ``_activate``)."""
+
+
+@dataclass
+class _Conv:
+    w: np.ndarray
+    """Weights (C_out, C_in * k * k), columns ordered (c, ky, kx)."""
+    b: np.ndarray
+    kernel: int
+    stride: int
+    pad: int
+    relu: bool
+    pool: bool
+
+
+def _f64(t: Any) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+
+
+def _t(weight: Any) -> np.ndarray:
+    """A Linear weight (outputs, inputs) as float64 (inputs, outputs), the layout :func:`_affine` reads."""
+    return np.ascontiguousarray(_f64(weight).T)
+
+
+class FixedOrderActor:
+    """The layers of a TorchScript ``DepthGRUModel`` export, run by :mod:`numba` loops in one fixed order.
+
+    ``forward(state (N, S), depth (N, C, H, W), h (L, N, Hd)) -> (head (N, K * (A + 1)) or (N, A), h_out)``,
+    float64 throughout; :meth:`act` adds the hypothesis selection (the best-scored candidate, the first on ties, as
+    ``HypothesisSelect``).
+    """
+
+    def __init__(self, module: Any, file: str) -> None:
+        """Read the weights of a TorchScript export ``module`` (``torch.jit.load``); ``file`` names it in errors."""
+        self.file = file
+
+        def refuse(what: str) -> None:
+            raise ValueError(f"network 'fixed_order': {file!r} has {what}, which the fixed-order runtime does not run "
+                             "(it runs the DepthGRUModel export: normaliser, Conv2d/ReLU/MaxPool2d(2), Flatten-Linear-"
+                             "ReLU, GRU, Linear/ELU/ReLU/Tanh, HypothesisSelect); use network 'export'")  # fmt: skip
+
+        for attr in ("obs_normalizer", "encoder", "gru", "mlp", "deterministic_output"):
+            if not hasattr(module, attr):
+                refuse(f"no {attr!r} submodule")
+        norm = module.obs_normalizer
+        if norm.original_name == "EmpiricalNormalization":
+            self.norm = (_f64(norm._mean).reshape(-1), _f64(norm._std).reshape(-1), float(norm.eps))
+        elif norm.original_name == "Identity":
+            self.norm = None
+        else:
+            refuse(f"a state normaliser {norm.original_name!r}")
+        if module.deterministic_output.original_name != "_IdentityDeterministicOutput":
+            refuse(f"an output transform {module.deterministic_output.original_name!r}")
+        self.convs: list[_Conv] = []
+        for name, layer in module.encoder.conv.named_children():
+            kind = layer.original_name
+            if kind == "Conv2d":
+                if tuple(layer.dilation) != (1, 1) or layer.groups != 1 or layer.padding_mode != "zeros":
+                    refuse(f"a dilated, grouped or non-zero-padded convolution (encoder.conv.{name})")
+                st, pd = tuple(layer.stride), tuple(layer.padding)
+                if st[0] != st[1] or pd[0] != pd[1] or layer.kernel_size[0] != layer.kernel_size[1]:
+                    refuse(f"a non-square convolution (encoder.conv.{name})")
+                w = _f64(layer.weight)
+                b = _f64(layer.bias) if layer.bias is not None else np.zeros(w.shape[0])
+                self.convs.append(_Conv(np.ascontiguousarray(w.reshape(w.shape[0], -1)), b, int(w.shape[2]),
+                                        int(st[0]), int(pd[0]), False, False))  # fmt: skip
+            elif kind == "ReLU" and self.convs and not self.convs[-1].pool:
+                self.convs[-1].relu = True
+            elif kind == "MaxPool2d" and self.convs and layer.kernel_size == 2 and layer.stride == 2 \
+                    and layer.padding == 0 and not layer.ceil_mode:  # fmt: skip
+                self.convs[-1].pool = True
+            else:
+                refuse(f"a layer {kind!r} at encoder.conv.{name}")
+        proj = [c.original_name for _, c in module.encoder.proj.named_children()]
+        if proj != ["Flatten", "Linear", "ReLU"]:
+            refuse(f"an encoder projection {proj}")
+        lin = getattr(module.encoder.proj, "1")
+        self.proj = (_t(lin.weight), _f64(lin.bias))
+        self.num_layers, self.hidden_size = int(module.num_layers), int(module.hidden_size)
+        self.gru = []
+        for k in range(self.num_layers):
+            g = module.gru
+            self.gru.append((_t(getattr(g, f"weight_ih_l{k}")), _t(getattr(g, f"weight_hh_l{k}")),
+                             _f64(getattr(g, f"bias_ih_l{k}")), _f64(getattr(g, f"bias_hh_l{k}"))))  # fmt: skip
+        heads = dict(module.mlp.named_children())
+        core = heads.get("0") if "0" in heads and heads["0"].original_name == "MLP" else module.mlp
+        self.mlp: list[tuple[np.ndarray, np.ndarray, int]] = []
+        for name, layer in core.named_children():
+            kind = layer.original_name
+            if kind == "Linear":
+                self.mlp.append((_t(layer.weight), _f64(layer.bias), 0))
+            elif kind in ACTIVATIONS and self.mlp and self.mlp[-1][2] == 0:
+                w, b, _ = self.mlp[-1]
+                self.mlp[-1] = (w, b, ACTIVATIONS[kind])
+            else:
+                refuse(f"a head layer {kind!r} ({name})")
+        select = heads.get("1") if core is not module.mlp else None
+        if select is not None and select.original_name != "HypothesisSelect":
+            refuse(f"a head selection {select.original_name!r}")
+        self.num_hypotheses = int(select.num_hypotheses) if select is not None else 1
+        self.action_dim = int(select.action_dim) if select is not None else int(self.mlp[-1][0].shape[1])
+        if select is not None and self.mlp[-1][0].shape[1] != self.num_hypotheses * (self.action_dim + 1):
+            refuse(f"a head of {self.mlp[-1][0].shape[1]} outputs for {self.num_hypotheses} hypotheses")
+
+    def forward(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The head's raw outputs (N, K (A + 1)) and the new hidden state (L, N, Hd), both float64."""
+        x = np.ascontiguousarray(state, dtype=np.float64)
+        if self.norm is not None:
+            mean, std, eps = self.norm
+            x = (x - mean) / (std + eps)  # elementwise: one rounding per value on every processor
+        img = np.ascontiguousarray(np.asarray(depth, dtype=np.float64).transpose(1, 0, 2, 3))  # (C, N, H, W)
+        n_b = img.shape[1]
+        for c in self.convs:
+            k = c.kernel
+            ho = (img.shape[2] + 2 * c.pad - k) // c.stride + 1
+            wo = (img.shape[3] + 2 * c.pad - k) // c.stride + 1
+            cols = np.empty((img.shape[0] * k * k, n_b * ho * wo))
+            _im2col(img, k, c.stride, c.pad, ho, wo, cols)
+            out = np.empty((c.w.shape[0], n_b * ho * wo))
+            _conv_rows(cols, c.w, c.b, out)
+            if c.relu:
+                np.maximum(out, 0.0, out=out)
+            out = out.reshape(-1, n_b, ho, wo)
+            if c.pool:
+                pooled = np.empty((out.shape[0], n_b, ho // 2, wo // 2))
+                _max_pool2(out, pooled)
+                out = pooled
+            img = out
+        img = np.ascontiguousarray(img.transpose(1, 0, 2, 3))  # (N, C, H, W): flattened in nn.Flatten's order
+        feat = np.empty((img.shape[0], self.proj[0].shape[1]))
+        _affine(np.ascontiguousarray(img.reshape(img.shape[0], -1)), self.proj[0], self.proj[1], feat)
+        _activate(feat, 1)
+        y = np.ascontiguousarray(np.concatenate((x, feat), axis=1))
+        h_in = np.ascontiguousarray(h, dtype=np.float64)
+        h_out = np.empty_like(h_in)
+        for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(self.gru):
+            gi = np.empty((y.shape[0], w_ih.shape[1]))
+            gh = np.empty((y.shape[0], w_hh.shape[1]))
+            _affine(y, w_ih, b_ih, gi)
+            _affine(h_in[k], w_hh, b_hh, gh)
+            _gru_gates(gi, gh, h_in[k], h_out[k])
+            y = h_out[k]
+        for w, b, act in self.mlp:
+            out = np.empty((y.shape[0], w.shape[1]))
+            _affine(y, w, b, out)
+            if act:
+                _activate(out, act)
+            y = out
+        return y, h_out
+
+    def candidates(self, head: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(actions (N, K, A), scores (N, K))`` of a multi-hypothesis head (K = 1: the head is the action)."""
+        k, a = self.num_hypotheses, self.action_dim
+        if k == 1 and head.shape[1] == a:
+            return head[:, None, :], np.zeros((len(head), 1))
+        return head[:, : k * a].reshape(-1, k, a), head[:, k * a :]
+
+    def act(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The chosen actions (N, A) (the best-scored hypothesis, the first on ties) and the new hidden state."""
+        head, h_out = self.forward(state, depth, h)
+        cands, scores = self.candidates(head)
+        best = np.argmax(scores, axis=1)  # the first maximum, as torch.argmax on these finite scores
+        return cands[np.arange(len(cands)), best], h_out

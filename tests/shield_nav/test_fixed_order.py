@@ -1,0 +1,151 @@
+"""The fixed-order network runtime (``network: fixed_order``): its exponential against libm, its actor against the
+TorchScript export it reads (an independent implementation), the same bits from a baseline x86-64 build as from the
+host build, refusals that name what they do not run, and a flight through the harness."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from envs.config import ConfigError
+from shield_nav import evaluation as E
+from shield_nav.evaluation.fixed_order import FixedOrderActor, fixed_exp
+
+torch = pytest.importorskip("torch")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _export(out_dir, num_hypotheses=1, seed=0):
+    from tensordict import TensorDict
+
+    from shield_nav.models import DepthGRUModel, export_policy
+
+    torch.manual_seed(seed)
+    obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21)}, [2])
+    model = DepthGRUModel(obs, {"actor": ["depth", "state"]}, "actor", 4, rnn_hidden_dim=16,
+                          num_hypotheses=num_hypotheses,
+                          distribution_cfg={"class_name": "GaussianDistribution", "init_std": 0.5})  # fmt: skip
+    with torch.no_grad():  # a normaliser that is not the identity, so its arithmetic is checked too
+        model.obs_normalizer._mean.copy_(torch.linspace(-0.5, 0.5, 21))
+        model.obs_normalizer._std.copy_(torch.linspace(0.5, 2.0, 21))
+        if num_hypotheses > 1:  # scores far apart, so the choice is not decided by the last bits
+            model.mlp[0][-1].bias[-num_hypotheses:] = torch.arange(num_hypotheses, dtype=torch.float32)[[1, 2, 0]] * 3
+    return export_policy(model, os.path.join(out_dir, "exported"))
+
+
+def _inputs(n=5, seed=1):
+    rng = np.random.default_rng(seed)
+    state = rng.normal(size=(n, 21)).astype(np.float32)
+    depth = rng.uniform(size=(n, 1, 60, 100)).astype(np.float32)
+    h = rng.normal(size=(1, n, 16)).astype(np.float32) * 0.5
+    return state, depth, h
+
+
+def test_fixed_exp_against_libm_and_at_its_edges():
+    xs = np.concatenate((np.linspace(-740.0, 709.0, 20001), np.linspace(-1.0, 1.0, 2001), [0.5 * math.log(2)]))
+    got = np.array([fixed_exp(float(x)) for x in xs])
+    want = np.exp(xs)
+    nz = want > 1e-300  # relative error where the result is a normal number
+    assert np.max(np.abs(got[nz] - want[nz]) / want[nz]) < 5e-16
+    assert fixed_exp(0.0) == 1.0
+    assert fixed_exp(1.0) == pytest.approx(math.e, rel=2.3e-16)
+    assert fixed_exp(710.0) == math.inf and fixed_exp(-746.0) == 0.0
+    assert math.isnan(fixed_exp(float("nan")))
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_fixed_order_actor_equals_the_torchscript_export(tmp_path, k):
+    paths = _export(str(tmp_path), num_hypotheses=k)
+    jit = E.load_policy(paths["jit"], "p")
+    fixed = E.load_policy(paths["jit"], "p", network="fixed_order")
+    assert fixed.info.kind == "fixed_order" and fixed.num_hypotheses() == k
+    assert (fixed.info.obs_dim, fixed.info.hidden_size) == (21, 16)
+    state, depth, h = _inputs()
+    a_jit, h_jit = jit.step(state, depth, h)
+    a_fix, h_fix = fixed.step(state, depth, h)
+    assert a_fix.dtype == np.float64 and h_fix.shape == (1, 5, 16)
+    # float32 kernels against float64 sums: the same numbers to float32 rounding.
+    np.testing.assert_allclose(a_fix, a_jit, atol=2e-6)
+    np.testing.assert_allclose(h_fix, h_jit, atol=2e-6)
+    # A second step from the returned state (the hidden state threads through).
+    a2_jit, _ = jit.step(state, depth, h_jit)
+    a2_fix, _ = fixed.step(state, depth, h_fix)
+    np.testing.assert_allclose(a2_fix, a2_jit, atol=4e-6)
+    if k > 1:  # the candidates in score order, the first being step's choice
+        chosen, others, h1 = fixed.step_hypotheses(state, depth, h)
+        c_jit, o_jit, _ = jit.step_hypotheses(state, depth, h)
+        np.testing.assert_array_equal(chosen, a_fix)
+        np.testing.assert_array_equal(h1, h_fix)
+        np.testing.assert_allclose(others, o_jit, atol=2e-6)
+
+
+_SCRIPT = """
+import sys
+import numpy as np
+import torch
+from shield_nav.evaluation.fixed_order import FixedOrderActor
+m = torch.jit.load(sys.argv[1])
+d = np.load(sys.argv[2])
+head, h = FixedOrderActor(m, sys.argv[1]).forward(d["state"], d["depth"], d["h"])
+np.savez(sys.argv[3], head=head, h=h)
+"""
+
+
+def test_a_baseline_x86_64_build_gives_the_host_builds_bits(tmp_path):
+    """The point of the runtime: no instruction set changes a bit. The kernels compiled for the generic x86-64 CPU
+    (no AVX, no FMA), in a fresh cache, give the same bits as this process's host build."""
+    paths = _export(str(tmp_path), num_hypotheses=3)
+    state, depth, h = _inputs(n=7, seed=4)
+    np.savez(tmp_path / "in.npz", state=state, depth=depth, h=h)
+    head, h_out = FixedOrderActor(torch.jit.load(paths["jit"]), paths["jit"]).forward(state, depth, h)
+    env = {**os.environ, "NUMBA_CPU_NAME": "generic", "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}  # fmt: skip
+    subprocess.run([sys.executable, "-c", _SCRIPT, paths["jit"], str(tmp_path / "in.npz"), str(tmp_path / "out.npz")],
+                   check=True, env=env, cwd=ROOT, timeout=600)  # fmt: skip
+    other = np.load(tmp_path / "out.npz")
+    assert np.array_equal(other["head"].view(np.int64), head.view(np.int64))
+    assert np.array_equal(other["h"].view(np.int64), h_out.view(np.int64))
+
+
+def test_what_the_fixed_order_runtime_does_not_run_is_refused_by_name(tmp_path):
+    class Other(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.lin = torch.nn.Linear(3, 2)
+
+        def forward(self, x):
+            return self.lin(x)
+
+    with pytest.raises(ValueError, match="fixed_order.*no 'obs_normalizer' submodule"):
+        FixedOrderActor(torch.jit.script(Other()), "other.pt")
+    # An ONNX file is read through the TorchScript export beside it; without one the loader says what it reads.
+    paths = _export(str(tmp_path))
+    via_onnx = E.load_policy(paths["onnx"], "p", network="fixed_order")
+    assert via_onnx.info.kind == "fixed_order" and via_onnx.info.path == paths["jit"]
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    os.replace(paths["onnx"], lone / "policy.onnx")
+    with pytest.raises(E.EvalError, match="network 'fixed_order' reads the TorchScript export policy.pt"):
+        E.load_policy(lone / "policy.onnx", "p", network="fixed_order")
+    with pytest.raises(ConfigError, match="config key 'network': 'fast'; known"):
+        E.load_eval_config(None, ["network=fast"])
+
+
+def test_a_fixed_order_run_records_its_network_and_repeats(tmp_path):
+    _export(str(tmp_path / "ckpt"))
+    extra = ["name=tiny", "configurations=[mine]", "rows.mine.label=Mine", "rows.mine.policy=mine",
+             f"checkpoints.mine={tmp_path / 'ckpt'}", "scenes.family=ablation", "scenes.indices=[7]", "speeds=[9.0]",
+             "trials_per_scene=2", "plots=false", "network=fixed_order",
+             "env_overrides=[episode.timeout_factor=0.05]"]  # fmt: skip
+    for out in ("a", "b"):
+        E.evaluate(E.load_eval_config(None, extra), str(tmp_path / out), progress=False)
+    man = json.loads((tmp_path / "a" / "manifest.json").read_text())
+    assert man["config"]["network"] == "fixed_order"
+    assert man["checkpoints"]["mine"]["path"].endswith("policy.pt")
+    a, b = (json.loads((tmp_path / o / "trials.json").read_text()) for o in ("a", "b"))
+    assert [t["steps"] for t in a] == [t["steps"] for t in b] and all(t["steps"] > 0 for t in a)

@@ -46,6 +46,22 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _pin_blas() -> None:
+    """Start this command again with OpenBLAS's kernels pinned (``network: fixed_order``; shield_nav/provenance.py).
+
+    numpy has loaded OpenBLAS by now, and OpenBLAS reads ``OPENBLAS_CORETYPE`` only when it loads, so the pinned run
+    is a new process with the same arguments (the worker processes inherit it).
+    """
+    from shield_nav.provenance import BLAS_CORE, pinned_blas_environment
+
+    env = pinned_blas_environment()
+    if env is None:
+        return
+    print(f"eval.py: network fixed_order: restarting with OPENBLAS_CORETYPE={BLAS_CORE} (processor-independent "
+          "BLAS kernels)", file=sys.stderr, flush=True)  # fmt: skip
+    os.execve(sys.executable, [sys.executable, *sys.argv], env)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse, build the config, run, print the table. Bad input exits with status 2 and one clear line."""
     args = build_parser().parse_args(argv)
@@ -55,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         cfg, explicit = config_from_args(args)
+        if cfg.network == "fixed_order" and argv is None:
+            _pin_blas()  # returns only where OpenBLAS already runs the pinned kernels (or off x86-64)
         out = args.out or os.path.join("eval_out", cfg.name)
         summary = evaluate(cfg, out, explicit, progress=not args.no_progress, argv=sys.argv)
     except (EvalError, ConfigError) as err:

@@ -13,9 +13,11 @@ MuJoCo and torch choose kernels by it.
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import platform
 
 __all__ = [
+    "BLAS_CORE",
     "PACKAGES",
     "SIMD_FLAGS",
     "cpu_model",
@@ -23,6 +25,7 @@ __all__ = [
     "format_differences",
     "manifest_record",
     "package_versions",
+    "pinned_blas_environment",
     "version_differences",
 ]
 
@@ -90,6 +93,28 @@ def cpu_simd() -> str | None:
     except OSError:
         pass
     return None
+
+
+BLAS_CORE = "Prescott"
+"""The OpenBLAS kernel set a fixed-order evaluation pins on x86-64 (``OPENBLAS_CORETYPE``): the SSE3 kernels every
+x86-64 processor runs. numpy calls OpenBLAS for its small matrix products (the vehicle's mixer and motor torques, the
+shield's products), and OpenBLAS otherwise picks its kernels by processor, whose results differ in the last bits
+(docs/evaluation.md, "A network that does not depend on the processor")."""
+
+
+def pinned_blas_environment(environ: dict | None = None, machine: str | None = None) -> dict | None:
+    """The environment to re-run with so that OpenBLAS uses :data:`BLAS_CORE`, or None where nothing is to change.
+
+    None when ``OPENBLAS_CORETYPE`` already names it, or off x86-64 (other architectures have other kernel names;
+    the project makes no cross-architecture claim). OpenBLAS reads the variable when it loads, so a process that
+    has imported numpy must be started again with it (``eval.py`` does, for ``network: fixed_order``).
+    """
+    env = dict(os.environ if environ is None else environ)
+    arch = (machine if machine is not None else platform.machine()).lower()
+    if arch not in ("x86_64", "amd64") or env.get("OPENBLAS_CORETYPE") == BLAS_CORE:
+        return None
+    env["OPENBLAS_CORETYPE"] = BLAS_CORE
+    return env
 
 
 def manifest_record(manifest: dict) -> dict | None:

@@ -219,7 +219,8 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
     os.makedirs(os.path.join(out_dir, "units"), exist_ok=True)
     ident = _identity(prep)
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()
-    arithmetic = {"cpu_simd": cpu_simd(), "packages": package_versions()}  # what the flights' arithmetic ran on
+    arithmetic = {"cpu_simd": cpu_simd(), "packages": package_versions(),  # what the flights' arithmetic ran on
+                  "openblas_coretype": os.environ.get("OPENBLAS_CORETYPE")}  # fmt: skip
     man_path = os.path.join(out_dir, "manifest.json")
     if os.path.exists(man_path):
         with open(man_path) as f:

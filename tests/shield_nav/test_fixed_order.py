@@ -149,3 +149,41 @@ def test_a_fixed_order_run_records_its_network_and_repeats(tmp_path):
     assert man["checkpoints"]["mine"]["path"].endswith("policy.pt")
     a, b = (json.loads((tmp_path / o / "trials.json").read_text()) for o in ("a", "b"))
     assert [t["steps"] for t in a] == [t["steps"] for t in b] and all(t["steps"] > 0 for t in a)
+
+
+def test_the_pinned_blas_environment_by_hand():
+    from shield_nav.provenance import BLAS_CORE, pinned_blas_environment
+
+    assert BLAS_CORE == "Prescott"
+    env = pinned_blas_environment({"A": "1"}, "x86_64")
+    assert env == {"A": "1", "OPENBLAS_CORETYPE": "Prescott"}
+    assert pinned_blas_environment({"OPENBLAS_CORETYPE": "Haswell"}, "x86_64")["OPENBLAS_CORETYPE"] == "Prescott"
+    assert pinned_blas_environment({"OPENBLAS_CORETYPE": "Prescott"}, "x86_64") is None  # already pinned
+    assert pinned_blas_environment({}, "aarch64") is None  # other kernel names; no claim off x86-64
+
+
+def test_eval_cli_restarts_a_fixed_order_run_with_the_pinned_blas_kernels(tmp_path):
+    import platform
+
+    import yaml
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump({"name": "tiny", "configurations": ["goal_seeking"], "scenes": {"family": "ablation",
+                                   "indices": [7]}, "speeds": [9.0], "trials_per_scene": 1, "plots": False,
+                                   "network": "fixed_order"}))  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+    cmd = [sys.executable, "eval.py", "--config", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    assert res.returncode == 0, res.stderr[-2000:]
+    man = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    if platform.machine().lower() in ("x86_64", "amd64"):
+        assert "restarting with OPENBLAS_CORETYPE=Prescott" in res.stderr
+        assert man["openblas_coretype"] == "Prescott"
+    else:
+        assert man["openblas_coretype"] is None
+    # The default network leaves OpenBLAS to choose (the tables' flights).
+    cfg.write_text(cfg.read_text().replace("fixed_order", "export"))
+    res = subprocess.run([*cmd[:-3], "--out", str(tmp_path / "out2"), "--no-progress"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300, env=env)  # fmt: skip
+    assert res.returncode == 0 and "restarting" not in res.stderr
+    assert json.loads((tmp_path / "out2" / "manifest.json").read_text())["openblas_coretype"] is None

@@ -118,9 +118,7 @@ class LoadedPolicy:
         if self.info.kind == "fixed_order":
             head, h_out = self._runner.forward(np.asarray(state, dtype=np.float32),
                                                np.asarray(depth, dtype=np.float32), h)  # fmt: skip
-            cands, scores = self._runner.candidates(head)
-            order = np.argsort(-scores, axis=1, kind="stable")  # ties: the first, as HypothesisSelect
-            ranked = np.take_along_axis(cands, order[:, :, None], axis=1)
+            ranked = _by_score(*self._runner.candidates(head))
             return ranked[:, 0], ranked[:, 1:], h_out
         import torch
 
@@ -133,9 +131,14 @@ class LoadedPolicy:
             raw = getattr(m.mlp, "0")(h_out[-1])
         a = (raw.shape[-1] - k) // k
         cands = m.deterministic_output(raw[:, : k * a].reshape(-1, k, a)).numpy().astype(np.float64)
-        order = np.argsort(-raw[:, k * a :].numpy(), axis=1, kind="stable")  # ties: the first, as HypothesisSelect
-        ranked = np.take_along_axis(cands, order[:, :, None], axis=1)
+        ranked = _by_score(cands, raw[:, k * a :].numpy())
         return ranked[:, 0], ranked[:, 1:], h_out.numpy().astype(np.float32)
+
+
+def _by_score(cands: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """Candidates (N, K, A) in descending score order (N, K); ties keep the first, as ``HypothesisSelect``."""
+    order = np.argsort(-scores, axis=1, kind="stable")
+    return np.take_along_axis(cands, order[:, :, None], axis=1)
 
 
 def _sha256(path: str) -> str:

@@ -60,9 +60,9 @@ def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> Shi
 
 
 POLICY_CONTROLLERS = ("policy", "teacher")
+"""Row controllers that run a checkpoint named by ``RowConfig.policy``."""
 NETWORKS = ("export", "fixed_order")
 """Values of :attr:`EvalConfig.network`."""
-"""Row controllers that run a checkpoint named by ``RowConfig.policy``."""
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 """The repository root (the package is installed editable from it)."""
@@ -125,8 +125,9 @@ class EvalConfig:
     """How a policy's network is run. ``export``: the exported file found (``policy.onnx`` through onnxruntime, else
     TorchScript ``policy.pt``), with the processor's fastest kernels, whose sums differ in the last bits from one
     processor kind to another. ``fixed_order``: the weights of the TorchScript export ``policy.pt`` run by
-    :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations, so a run repeats bit for bit
-    on any processor (docs/evaluation.md, "Reproducing a table")."""
+    :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations; ``eval.py`` then also pins
+    OpenBLAS's kernels (:func:`shield_nav.provenance.pinned_blas_environment`), so the flights do not depend on the
+    x86-64 processor (docs/evaluation.md, "A flight that does not depend on the processor")."""
     missing_checkpoints: str = "error"
     """``error``: a row whose checkpoint is missing stops the run. ``skip``: the row is shown as missing."""
     scenes: SceneSelection = field(default_factory=SceneSelection)

@@ -10,6 +10,7 @@ depth     (N, 1, 60, 100)       noisy normalised depth (policy)
 state     (N, 21)               noisy proprioception and goal (policy), see ``STATE_LAYOUT``
 memory    (N, B)                onboard scene memory, nearest remembered obstacle per bearing sector (policy;
                                 only with ``env.scene_memory.enabled``)
+clock     (N, 1)                the slack to the time limit (policy; only with ``env.episode.clock_input``)
 critic    (N, C)                noise-free privileged vector (critic only)
 teacher   (N, 21 + M)           clean state + privileged local ESDF map (only with ``env.local_map.enabled``;
                                 a privileged teacher's input, see docs/training.md "Teacher-student")

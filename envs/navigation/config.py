@@ -53,6 +53,17 @@ class EpisodeConfig:
     """Initial forward speed as a fraction [lo, hi] of the target speed, sampled uniformly."""
     timeout_factor: float = 2.5
     """Time limit = timeout_factor * straight-line distance / target speed + 5 s."""
+    deadline: str = "truncate"
+    """What the time limit is to the learner. ``truncate`` (default): a time-out is a truncation, bootstrapped from
+    the value of the state it stops in, so the return ignores the clock. ``terminate``: the time limit is part of the
+    task, as the evaluation counts it (a time-out is a failure): a time-out ends the return (no bootstrap, no success
+    bonus), and the privileged critic vector gets two more columns, the time left and the slack
+    (:data:`envs.navigation.env.CLOCK_EXTRA`), so that its value can depend on the clock (Pardo et al. 2018, "Time
+    Limits in Reinforcement Learning")."""
+    clock_input: bool = False
+    """Add the observation group ``clock`` (N, 1): the slack, time left x target speed / the straight-line distance
+    still to fly to the goal's radius, / 3 and clipped to [0, 1] (1: three times the time the target speed needs;
+    below 1/3: late). A policy input a vehicle has onboard (its clock, the goal, the deadline)."""
     out_of_bounds_margin: float = 3.0
     """The episode ends when the vehicle leaves the scene bounds by more than this in x or y [m] (starts are at
     the x = 0 edge, so a smaller margin ends exploratory episodes that drift backwards almost at once)."""
@@ -304,6 +315,8 @@ class NavConfig:
         )
         require(self.episode.goal_radius > 0, f"{prefix}episode.goal_radius", "must be > 0")
         require(self.episode.goal_anchors >= 0, f"{prefix}episode.goal_anchors", "must be >= 0")
+        require(self.episode.deadline in ("truncate", "terminate"), f"{prefix}episode.deadline",
+                f"must be 'truncate' or 'terminate', got {self.episode.deadline!r}")  # fmt: skip
         a = self.action
         require(
             0 < a.thrust_min < self.vehicle.gravity < a.thrust_max <= self.vehicle.controller.thrust_range[1],

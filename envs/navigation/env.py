@@ -40,6 +40,11 @@ PRIV_EXTRA = (
     ("esdf_grad", 3, "ESDF gradient"),
     ("vel_w", 3, "world-frame velocity / 10 [m/s]"),
 )
+CLOCK_EXTRA = (
+    ("time_left", 1, "time left to the time limit / 30 [s]"),
+    ("slack", 1, "the clock observation (``episode.clock_input``)"),
+)
+"""Columns the critic vector gains, after the min-pooled depth, with ``episode.deadline: terminate``."""
 
 
 class NavigationEnv(VectorEnv):
@@ -65,7 +70,8 @@ class NavigationEnv(VectorEnv):
 
     **Observation** (policy, noisy): ``{"depth": (N, 1, 60, 100) float32 in [0, 1] (inverse depth
     min_range / z, 0 = invalid), "state": (N, 21) float32}`` laid out as :data:`STATE_LAYOUT`, and with
-    ``scene_memory.enabled`` also ``"memory": (N, bins)`` (:class:`envs.navigation.memory.SceneMemory`). The privileged
+    ``scene_memory.enabled`` also ``"memory": (N, bins)`` (:class:`envs.navigation.memory.SceneMemory`), with
+    ``episode.clock_input`` also ``"clock": (N, 1)`` (:meth:`clock`). The privileged
     critic vector (noise-free state, geodesic distance, ESDF and gradient, world velocity, min-pooled clean depth)
     is ``info["critic"]`` (N, C); it is never part of the policy observation.
 
@@ -75,7 +81,8 @@ class NavigationEnv(VectorEnv):
 
     **Episode end**: terminated on collision (MuJoCo contact with an obstacle, floor or ceiling; optionally also
     ESDF < radius + ``collision_margin``), out of bounds, or success (within ``goal_radius`` of the goal);
-    truncated on the time limit (``info["time_outs"]``, to bootstrap).
+    truncated on the time limit (``info["time_outs"]``, to bootstrap), or with ``episode.deadline: terminate``
+    terminated there too (the deadline as part of the task).
 
     Args:
         num_envs: Number of vehicles N (overrides ``config.num_envs``).
@@ -143,6 +150,8 @@ class NavigationEnv(VectorEnv):
         }
         if self.memory is not None:
             spaces["memory"] = gym.spaces.Box(0.0, 1.0, (self.memory.dim,), np.float32)
+        if cfg.episode.clock_input:
+            spaces["clock"] = gym.spaces.Box(0.0, 1.0, (1,), np.float32)
         self.single_observation_space = gym.spaces.Dict(spaces)
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, n)
@@ -151,6 +160,9 @@ class NavigationEnv(VectorEnv):
         if H % pr or W % pc:
             raise ValueError(f"critic_depth_pool {cfg.critic_depth_pool} must divide the image {H}x{W}")
         self.critic_dim = STATE_DIM + sum(k for _, k, _ in PRIV_EXTRA) + pr * pc
+        self._deadline_terminates = cfg.episode.deadline == "terminate"
+        if self._deadline_terminates:
+            self.critic_dim += sum(k for _, k, _ in CLOCK_EXTRA)
         lm = cfg.local_map
         gx, gy, gz = np.meshgrid(lm.xs, lm.ys, lm.zs, indexing="ij")
         self._map_offsets = np.stack((gx.ravel(), gy.ravel(), gz.ravel()), axis=1)  # (M, 3), heading frame
@@ -253,7 +265,10 @@ class NavigationEnv(VectorEnv):
         # escape from the negative shaping terms, and PPO with a long horizon learns to fly out of bounds.
         terms = self._get_rewards(collision | oob, success)
         reward = terms @ self._scales
-        terminated = (collision | oob | success) & ~self.frozen_buf
+        ended = collision | oob | success
+        if self._deadline_terminates:
+            ended = ended | timeout  # the deadline is part of the task: a time-out ends the return
+        terminated = ended & ~self.frozen_buf
         truncated = timeout & ~terminated & ~self.frozen_buf
         reward[self.frozen_buf] = 0.0
         done = terminated | truncated
@@ -434,23 +449,32 @@ class NavigationEnv(VectorEnv):
         pr, pc = cfg.critic_depth_pool
         pooled = min_pool(self.clean_depth_buf, pr, pc)
         pooled = normalize_depth(pooled.reshape(self.num_envs, -1), cfg.camera)
-        self._critic = np.concatenate(
-            (
-                clean_state,
-                phi[:, None] / 100.0,
-                np.clip(esdf, -1.0, 5.0)[:, None] / 5.0,
-                grad,
-                self.vehicles.vel_w / 10.0,
-                pooled,
-            ),
-            axis=1,
-        ).astype(np.float32)
+        columns = [clean_state, phi[:, None] / 100.0, np.clip(esdf, -1.0, 5.0)[:, None] / 5.0, grad,
+                   self.vehicles.vel_w / 10.0, pooled]  # fmt: skip
+        clock = None
+        if self._deadline_terminates or cfg.episode.clock_input:
+            time_left, clock = self.clock(pos)
+            if self._deadline_terminates:
+                columns += [time_left[:, None] / 30.0, clock[:, None]]
+        self._critic = np.concatenate(columns, axis=1).astype(np.float32)
         if cfg.local_map.enabled:
             self._teacher = np.concatenate((clean_state, self._local_map(pos, r_wb)), axis=1).astype(np.float32)
         self._obs = {"depth": depth, "state": state.astype(np.float32)}
         if self.memory is not None:
             self._obs["memory"] = self.memory.observe(pos, r_wb)
+        if cfg.episode.clock_input:
+            self._obs["clock"] = clock[:, None].astype(np.float32)
         return self._obs
+
+    def clock(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The time left to each env's limit [s] (N,) and the slack observation (N,) in [0, 1].
+
+        The slack is time left x target speed / the straight-line distance still to fly (to the goal's radius, at
+        least 1 m), divided by 3 and clipped to [0, 1]: how many times over the target speed's flight time is left.
+        """
+        left = np.maximum(self.max_episode_length_buf - self.episode_length_buf, 0) * self.cfg.vehicle.command_dt
+        to_go = np.maximum(np.linalg.norm(self.goal_buf - pos, axis=1) - self.cfg.episode.goal_radius, 1.0)
+        return left, np.clip(left * self.target_speed_buf / to_go / 3.0, 0.0, 1.0)
 
     def _local_map(self, pos: np.ndarray, r_wb: np.ndarray) -> np.ndarray:
         """The ESDF on the heading-frame grid of :class:`LocalMapConfig` (N, M), clipped and scaled to [-1, 1]."""

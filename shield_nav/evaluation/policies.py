@@ -218,7 +218,8 @@ def _speeds_from_config(path: str | None) -> tuple[float, float] | None:
 
 
 POLICY_ENV_SECTIONS = ("action", "camera", "vehicle", "scene_memory")
-"""Env config sections taken from a policy's training config when it is evaluated."""
+"""Env config sections taken from a policy's training config when it is evaluated (and of ``episode`` only
+``clock_input``: the evaluation's own episode settings, its time limit among them, stay)."""
 
 
 def _env_from_config(path: str | None) -> dict | None:
@@ -232,6 +233,9 @@ def _env_from_config(path: str | None) -> dict | None:
     if not isinstance(env, dict):
         return None
     out = {k: env[k] for k in POLICY_ENV_SECTIONS if isinstance(env.get(k), dict)}
+    episode = env.get("episode")
+    if isinstance(episode, dict) and episode.get("clock_input"):
+        out["episode"] = {"clock_input": True}
     return out or None
 
 

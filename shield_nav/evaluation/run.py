@@ -100,11 +100,13 @@ def prepare(cfg: EvalConfig, explicit_checkpoints: tuple[str, ...] = ()) -> Prep
                 raise EvalError(f"checkpoint {pname!r} ({pol.info.path}) reads {pol.info.obs_dim} teacher values; "
                                 f"its local map config gives {want}")  # fmt: skip
         else:
-            sizes = {"state": STATE_DIM, "memory": nav.scene_memory.bins if nav.scene_memory.enabled else None}
+            sizes = {"state": STATE_DIM, "memory": nav.scene_memory.bins if nav.scene_memory.enabled else None,
+                     "clock": 1 if nav.episode.clock_input else None}  # fmt: skip
             unknown = [g for g in pol.info.state_groups if sizes.get(g) is None]
             if unknown:
                 raise EvalError(f"checkpoint {pname!r} ({pol.info.path}) reads groups {unknown} its "
-                                f"env does not give (known: state; memory with scene_memory.enabled)")  # fmt: skip
+                                f"env does not give (known: state; memory with scene_memory.enabled; clock with "
+                                f"episode.clock_input)")  # fmt: skip
             check_layout(pol.info, sum(sizes[g] for g in pol.info.state_groups), (1, cam.height, cam.width))
         if pol.info.kind != "teacher" and (cam.height, cam.width) != depth_shape[1:]:
             notes.append(f"policy {pname!r} flies with its training camera {cam.width}x{cam.height}")

@@ -312,7 +312,15 @@ def train(
         weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict")
         if weights is None:
             raise ConfigError(f"config key 'runner.actor_init': {cfg.runner.actor_init!r} holds no actor or student")
-        runner.alg._raw_actor.load_state_dict(weights)
+        actor = runner.alg._raw_actor
+        mean = weights.get("obs_normalizer._mean")
+        if mean is not None and hasattr(actor, "obs_dim") and mean.shape[-1] < actor.obs_dim:
+            from shield_nav.models import expand_state_inputs
+
+            weights = expand_state_inputs(weights, actor)
+            print(f"[train] actor state widened from {mean.shape[-1]} to {actor.obs_dim} values "
+                  f"(new inputs start at zero weight)", flush=True)  # fmt: skip
+        actor.load_state_dict(weights)
         print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
         _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"), cfg.runner.actor_init)
     if resume is not None:

@@ -697,6 +697,42 @@ def test_policy_with_a_memory_input_reads_its_groups_and_the_env_section_from_it
     assert trial["steps"] > 0
 
 
+def test_policy_with_a_clock_input_gets_the_clock_of_the_evaluations_own_time_limit(tmp_path):
+    """A policy trained with ``clock`` is flown with ``episode.clock_input`` on and the eval's timeout_factor kept."""
+    torch = pytest.importorskip("torch")
+    from tensordict import TensorDict
+
+    from shield_nav.models import DepthGRUModel, export_policy
+
+    torch.manual_seed(0)
+    obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21), "clock": torch.rand(2, 1)}, [2])
+    groups = {"actor": ["depth", "state", "clock"], "critic": ["critic"]}
+    model = DepthGRUModel(obs, groups, "actor", 4, rnn_hidden_dim=16,
+                          distribution_cfg={"class_name": "GaussianDistribution", "init_std": 0.5})  # fmt: skip
+    export_policy(model, str(tmp_path / "ckpt" / "exported"))
+    (tmp_path / "ckpt" / "params").mkdir()
+    train_cfg = {"env": {"episode": {"target_speeds": [3.0], "timeout_factor": 2.5, "clock_input": True,
+                                     "deadline": "terminate"}},
+                 "runner": {"class_name": "OnPolicyRunner", "obs_groups": groups}}  # fmt: skip
+    (tmp_path / "ckpt" / "params" / "config.yaml").write_text(yaml.safe_dump(train_cfg))
+    pol = E.load_policy(tmp_path / "ckpt", "clk")
+    assert pol.info.obs_dim == 22 and pol.info.state_groups == ("state", "clock")
+    assert pol.info.train_env == {"episode": {"clock_input": True}}  # only the input, not the training limit
+    cfg = tiny_cfg("configurations=[clk]", "rows.clk.label=Clock", "rows.clk.policy=clk",
+                   f"checkpoints.clk={tmp_path / 'ckpt'}", "trials_per_scene=1", "speeds=[3.0]",
+                   "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
+    nav = E.nav_config(cfg, cfg.scenes.family, cfg.scene_indices[0], 3.0, 1, pol.info.train_env)
+    assert nav.episode.clock_input and nav.episode.timeout_factor == 0.05 and nav.episode.deadline == "truncate"
+    E.evaluate(cfg, str(tmp_path / "out"), progress=False)
+    (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())
+    assert trial["steps"] > 0
+    # Without its clock section (a config that lost it) the harness refuses the policy by the group's name.
+    train_cfg["env"]["episode"].pop("clock_input")
+    (tmp_path / "ckpt" / "params" / "config.yaml").write_text(yaml.safe_dump(train_cfg))
+    with pytest.raises(E.EvalError, match=r"\['clock'\].*episode\.clock_input"):
+        E.evaluate(cfg, str(tmp_path / "out2"), progress=False)
+
+
 def test_multi_hypothesis_policy_gives_its_candidates_in_score_order_and_flies_behind_the_choosing_shield(tmp_path):
     """``step_hypotheses`` against the eager model's own candidates and scores; the harness flies the option."""
     torch = pytest.importorskip("torch")

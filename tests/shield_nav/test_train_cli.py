@@ -228,6 +228,33 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     np.testing.assert_allclose(act, ref.numpy(), atol=1e-5)
 
 
+def test_actor_init_widens_a_narrower_actor_onto_a_clock_input_and_the_deadline_terminates(tmp_path):
+    """PPO from a 21-value actor onto ``[depth, state, clock]``: the clock enters through zero weights."""
+    root = str(tmp_path / "logs")
+    res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root])
+    assert res.returncode == 0, res.stderr[-3000:]
+    src_path = os.path.join(only_run_dir(root), "model_0.pt")
+    src = torch.load(src_path, weights_only=False)["actor_state_dict"]
+    root2 = str(tmp_path / "logs2")
+    res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root2, "--set", "env.episode.deadline=terminate",
+                     "env.episode.clock_input=true", "runner.obs_groups.actor=[depth,state,clock]",
+                     f"runner.actor_init={src_path}", "runner.critic_warmup_iterations=1",
+                     "runner.algorithm.schedule=fixed"])  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "actor state widened from 21 to 22 values" in res.stdout
+    ckpt = torch.load(os.path.join(only_run_dir(root2), "model_0.pt"), weights_only=False)
+    widened = ckpt["actor_state_dict"]
+    w_old, w_new = src["rnn.rnn.weight_ih_l0"], widened["rnn.rnn.weight_ih_l0"]  # (3 Hd, S + F)
+    assert w_new.shape[1] == w_old.shape[1] + 1
+    # The actor was frozen for the critic's warm-up iteration: the old inputs' weights as loaded, the clock's zero.
+    torch.testing.assert_close(w_new[:, :21], w_old[:, :21])
+    torch.testing.assert_close(w_new[:, 22:], w_old[:, 21:])
+    assert (w_new[:, 21] == 0).all()
+    sess = ort.InferenceSession(os.path.join(only_run_dir(root2), "exported", "policy.onnx"),
+                                providers=["CPUExecutionProvider"])  # fmt: skip
+    assert sess.get_inputs()[0].shape[1] == 22
+
+
 def test_distillation_inputs_fail_fast(tmp_path):
     root = str(tmp_path / "logs")
     res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", "--log-dir", root,

@@ -173,7 +173,7 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     state has more values (a new observation group after ``state``, e.g. ``memory``) starts from one with fewer
     through zero weights on the new values (:func:`shield_nav.models.expand_state_inputs`).
     """
-    from shield_nav.models import expand_single_head, expand_state_inputs
+    from shield_nav.models import expand_single_head
 
     student = runner.alg._raw_student
     ckpt = torch.load(path, map_location=device, weights_only=False)
@@ -184,13 +184,24 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     if getattr(student, "num_hypotheses", 1) > 1 and single:
         weights = expand_single_head(weights, student)
         print(f"[train] single-head student expanded to {student.num_hypotheses} hypotheses", flush=True)
-    mean = weights.get("obs_normalizer._mean")
-    if mean is not None and hasattr(student, "obs_dim") and mean.shape[-1] < student.obs_dim:
-        weights = expand_state_inputs(weights, student)
-        print(f"[train] student state widened from {mean.shape[-1]} to {student.obs_dim} values "
-              f"(new inputs start at zero weight)", flush=True)  # fmt: skip
-    student.load_state_dict(weights)
+    student.load_state_dict(_widened(weights, student, "student"))
     return ckpt.get("infos") or {}
+
+
+def _widened(weights: dict, model: Any, what: str) -> dict:
+    """``weights`` for ``model``, widened when the model's state has more values.
+
+    A new group after ``state`` (e.g. ``memory`` or ``clock``) enters through zero weights
+    (:func:`shield_nav.models.expand_state_inputs`); otherwise ``weights`` unchanged.
+    """
+    from shield_nav.models import expand_state_inputs
+
+    mean = weights.get("obs_normalizer._mean")
+    if mean is None or not hasattr(model, "obs_dim") or mean.shape[-1] >= model.obs_dim:
+        return weights
+    print(f"[train] {what} state widened from {mean.shape[-1]} to {model.obs_dim} values "
+          f"(new inputs start at zero weight)", flush=True)  # fmt: skip
+    return expand_state_inputs(weights, model)
 
 
 def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: bool = False) -> None:
@@ -312,15 +323,7 @@ def train(
         weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict")
         if weights is None:
             raise ConfigError(f"config key 'runner.actor_init': {cfg.runner.actor_init!r} holds no actor or student")
-        actor = runner.alg._raw_actor
-        mean = weights.get("obs_normalizer._mean")
-        if mean is not None and hasattr(actor, "obs_dim") and mean.shape[-1] < actor.obs_dim:
-            from shield_nav.models import expand_state_inputs
-
-            weights = expand_state_inputs(weights, actor)
-            print(f"[train] actor state widened from {mean.shape[-1]} to {actor.obs_dim} values "
-                  f"(new inputs start at zero weight)", flush=True)  # fmt: skip
-        actor.load_state_dict(weights)
+        runner.alg._raw_actor.load_state_dict(_widened(weights, runner.alg._raw_actor, "actor"))
         print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
         _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"), cfg.runner.actor_init)
     if resume is not None:

@@ -620,6 +620,9 @@ def test_row_shield_overrides_change_that_rows_shield_only(tmp_path):
     no_map = ShieldConfig(**E.BUILTIN_ROWS["full_no_map"].shield_overrides)
     no_map.validate()
     assert no_map.map_seconds == 0.0 and E.BUILTIN_ROWS["full_no_map"].policy == "full"
+    # full_alone flies the same policy file as full, with no shield.
+    alone, full = E.BUILTIN_ROWS["full_alone"], E.BUILTIN_ROWS["full"]
+    assert (alone.policy, alone.controller, alone.shield, full.shield) == ("full", "policy", False, True)
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides: unknown key\(s\) \['alpha2'\]"):
         E.resolve_rows(tiny_cfg("configurations=[blind]", *blind, "rows.blind.shield_overrides.alpha2=1.0"))
     with pytest.raises(E.EvalError, match=r"rows\.blind\.shield_overrides\.lag_s"):

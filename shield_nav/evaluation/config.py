@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import yaml
 
@@ -110,6 +110,9 @@ class SceneSelection:
 @dataclass
 class EvalConfig:
     """An evaluation run. Loaded from ``configs/eval/*.yaml``; the CLI flags override single fields."""
+
+    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"network": "export"}
+    """Output folders and pipeline selections written before ``network`` existed flew the exported network."""
 
     name: str = "eval"
     """Run name (default output folder ``eval_out/<name>``)."""

@@ -270,7 +270,8 @@ def _find_torchscript(file: str, name: str) -> str:
         if os.path.isfile(cand):
             return cand
     raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt, and there "
-                    f"is none beside {file!r}; point --checkpoint at a policy.pt or use network 'export'")  # fmt: skip
+                    f"is none beside {file!r}; point --checkpoint at a policy.pt or fly the ONNX file with --set "
+                    "network=export")  # fmt: skip
 
 
 def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "export") -> LoadedPolicy:

@@ -238,9 +238,14 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
                       f"default now, or at the value it had before): {', '.join(sorted(added))}",
                       file=sys.stderr)  # fmt: skip
         if old.get("identity_sha256") != digest and added is None:
+            was_network = (
+                stored_config(EvalConfig, old["config"]).get("network") if isinstance(old.get("config"), dict) else None
+            )
+            hint = (f" It was flown with network: {was_network}; add --set network={was_network} to resume it."
+                    if was_network is not None and was_network != prep.cfg.network else "")  # fmt: skip
             raise EvalError(
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
-                "the same command. Use another --out or delete the folder."
+                f"the same command. Use another --out or delete the folder.{hint}"
             )
         changed = version_differences(manifest_record(old), manifest_record(arithmetic))
         if changed:

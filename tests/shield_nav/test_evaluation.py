@@ -209,9 +209,10 @@ def test_exported_policy_loads_matches_torchscript_and_flies(tmp_path):
     assert a1.shape == (3, 4) and h1.shape == (1, 3, 16)
     np.testing.assert_allclose(a1, a2, atol=1e-5)
     np.testing.assert_allclose(h1, h2, atol=1e-5)
-    # Through the harness: 9 m/s is outside the trained [3, 5] -> a marked warning; the policy flies a short trial.
+    # Through the harness (the onnx file, network: export; the default flies policy.pt, test_fixed_order.py): 9 m/s
+    # is outside the trained [3, 5] -> a marked warning; the policy flies a short trial.
     cfg = tiny_cfg("configurations=[mine]", "rows.mine.label=Mine", "rows.mine.policy=mine",
-                   f"checkpoints.mine={tmp_path / 'ckpt'}", "trials_per_scene=1",
+                   f"checkpoints.mine={tmp_path / 'ckpt'}", "trials_per_scene=1", "network=export",
                    "env_overrides=[episode.timeout_factor=0.05]")  # fmt: skip
     with pytest.warns(UserWarning, match="outside 'mine'"):
         summary = E.evaluate(cfg, str(tmp_path / "out"), progress=False)
@@ -426,6 +427,30 @@ def test_a_folder_written_before_route_hysteresis_is_not_resumed_with_it(tmp_pat
     E.evaluate(tiny_cfg("baselines.expert.commit_dist=0"), out, progress=False)
     assert calls == []
     assert "baselines.expert.commit_dist" in capsys.readouterr().err
+
+
+def test_a_folder_flown_with_another_network_is_refused_with_the_flag_that_resumes_it(tmp_path, monkeypatch):
+    """A folder flown with one ``network`` is another run for the other; the refusal names the flag. A manifest
+    written before the key existed flew the exported network (its PRE_FIELD_VALUES)."""
+    out = str(tmp_path / "old")
+    E.evaluate(tiny_cfg("network=fixed_order"), out, progress=False)
+    with pytest.raises(E.EvalError, match="flown with network: fixed_order; add --set network=fixed_order to resume"):
+        E.evaluate(tiny_cfg("network=export"), out, progress=False)
+    man_path = os.path.join(out, "manifest.json")
+    with open(man_path) as f:
+        man = json.load(f)
+    del man["config"]["network"]
+    man["identity_sha256"] = "0" * 64
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    with pytest.raises(E.EvalError, match="flown with network: export; add --set network=export to resume it"):
+        E.evaluate(tiny_cfg("network=fixed_order"), out, progress=False)
+    import shield_nav.evaluation.run as run_module
+
+    calls = []
+    monkeypatch.setattr(run_module, "run_unit", lambda spec: calls.append(spec.key))
+    E.evaluate(tiny_cfg("network=export"), out, progress=False)
+    assert calls == []
 
 
 def test_eval_cli_subprocess(tmp_path):

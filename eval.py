@@ -46,19 +46,21 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _pin_blas() -> None:
-    """Start this command again with OpenBLAS's kernels pinned (``network: fixed_order``; shield_nav/provenance.py).
+def _pin_arithmetic() -> None:
+    """Start this command again with OpenBLAS's and numpy's kernels pinned (``network: fixed_order``).
 
-    numpy has loaded OpenBLAS by now, and OpenBLAS reads ``OPENBLAS_CORETYPE`` only when it loads, so the pinned run
-    is a new process with the same arguments (the worker processes inherit it).
+    numpy and OpenBLAS have loaded by now and read ``OPENBLAS_CORETYPE`` and ``NPY_DISABLE_CPU_FEATURES`` only when
+    they load, so the pinned run is a new process with the same arguments (the worker processes inherit it;
+    :func:`shield_nav.provenance.pinned_arithmetic_environment`).
     """
-    from shield_nav.provenance import BLAS_CORE, pinned_blas_environment
+    from shield_nav.provenance import pinned_arithmetic_environment
 
-    env = pinned_blas_environment()
+    env = pinned_arithmetic_environment()
     if env is None:
         return
-    print(f"eval.py: network fixed_order: restarting with OPENBLAS_CORETYPE={BLAS_CORE} (processor-independent "
-          "BLAS kernels)", file=sys.stderr, flush=True)  # fmt: skip
+    print(f"eval.py: network fixed_order: restarting with OPENBLAS_CORETYPE={env['OPENBLAS_CORETYPE']} "
+          f"NPY_DISABLE_CPU_FEATURES=\"{env.get('NPY_DISABLE_CPU_FEATURES', '')}\" (OpenBLAS's SSE3 kernels and "
+          "numpy's baseline loops on every x86-64 processor)", file=sys.stderr, flush=True)  # fmt: skip
     os.execve(sys.executable, [sys.executable, *sys.argv], env)
 
 
@@ -72,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg, explicit = config_from_args(args)
         if cfg.network == "fixed_order" and argv is None:
-            _pin_blas()  # returns only where OpenBLAS already runs the pinned kernels (or off x86-64)
+            _pin_arithmetic()  # returns only where the kernels are pinned already (or off x86-64)
         out = args.out or os.path.join("eval_out", cfg.name)
         summary = evaluate(cfg, out, explicit, progress=not args.no_progress, argv=sys.argv)
     except (EvalError, ConfigError) as err:

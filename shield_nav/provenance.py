@@ -25,7 +25,8 @@ __all__ = [
     "format_differences",
     "manifest_record",
     "package_versions",
-    "pinned_blas_environment",
+    "numpy_simd_targets",
+    "pinned_arithmetic_environment",
     "version_differences",
 ]
 
@@ -99,21 +100,41 @@ BLAS_CORE = "Prescott"
 """The OpenBLAS kernel set a fixed-order evaluation pins on x86-64 (``OPENBLAS_CORETYPE``): the SSE3 kernels every
 x86-64 processor runs. numpy calls OpenBLAS for its small matrix products (the vehicle's mixer and motor torques, the
 shield's products), and OpenBLAS otherwise picks its kernels by processor, whose results differ in the last bits
-(docs/evaluation.md, "A network that does not depend on the processor")."""
+(docs/evaluation.md, "A flight that does not depend on the processor")."""
 
 
-def pinned_blas_environment(environ: dict | None = None, machine: str | None = None) -> dict | None:
-    """The environment to re-run with so that OpenBLAS uses :data:`BLAS_CORE`, or None where nothing is to change.
+def numpy_simd_targets() -> list[str]:
+    """The run-time dispatch targets numpy uses on this processor (e.g. ``['X86_V3', 'X86_V4', ...]``).
 
-    None when ``OPENBLAS_CORETYPE`` already names it, or off x86-64 (other architectures have other kernel names;
-    the project makes no cross-architecture claim). OpenBLAS reads the variable when it loads, so a process that
-    has imported numpy must be started again with it (``eval.py`` does, for ``network: fixed_order``).
+    numpy compiles some loops (float64 ``sin``, ``cos``, ``exp``, ... among them) once per target above its baseline
+    and picks the best one the processor has when it loads; its AVX-512 loops round differently from its baseline
+    ones. ``NPY_DISABLE_CPU_FEATURES`` switches targets off at load; a switched-off target is not listed here.
+    """
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+    return [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+
+
+def pinned_arithmetic_environment(environ: dict | None = None, machine: str | None = None,
+                                  numpy_targets: list[str] | None = None) -> dict | None:  # fmt: skip
+    """The environment to re-run with so that the flights do not depend on the x86-64 processor, or None.
+
+    OpenBLAS is pinned to :data:`BLAS_CORE` and numpy's dispatch targets in use (``numpy_targets``, by default
+    :func:`numpy_simd_targets`) are switched off with ``NPY_DISABLE_CPU_FEATURES``, so numpy runs the loops of its
+    baseline build on every processor. None when both already hold, or off x86-64 (other architectures have other
+    kernel names; the project makes no cross-architecture claim). Both libraries read these variables when they load,
+    so a process that has imported numpy must be started again with them (``eval.py`` does, for ``network:
+    fixed_order``).
     """
     env = dict(os.environ if environ is None else environ)
     arch = (machine if machine is not None else platform.machine()).lower()
-    if arch not in ("x86_64", "amd64") or env.get("OPENBLAS_CORETYPE") == BLAS_CORE:
+    targets = numpy_simd_targets() if numpy_targets is None else list(numpy_targets)
+    if arch not in ("x86_64", "amd64") or (env.get("OPENBLAS_CORETYPE") == BLAS_CORE and not targets):
         return None
     env["OPENBLAS_CORETYPE"] = BLAS_CORE
+    if targets:
+        already = env.get("NPY_DISABLE_CPU_FEATURES", "").replace(",", " ").split()
+        env["NPY_DISABLE_CPU_FEATURES"] = " ".join(dict.fromkeys([*already, *targets]))
     return env
 
 

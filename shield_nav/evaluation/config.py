@@ -129,8 +129,8 @@ class EvalConfig:
     TorchScript ``policy.pt``), with the processor's fastest kernels, whose sums differ in the last bits from one
     processor kind to another. ``fixed_order``: the weights of the TorchScript export ``policy.pt`` run by
     :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations; ``eval.py`` then also pins
-    OpenBLAS's kernels (:func:`shield_nav.provenance.pinned_blas_environment`), so the flights do not depend on the
-    x86-64 processor (docs/evaluation.md, "A flight that does not depend on the processor")."""
+    OpenBLAS's and numpy's kernels (:func:`shield_nav.provenance.pinned_arithmetic_environment`), so the flights do
+    not depend on the x86-64 processor (docs/evaluation.md, "A flight that does not depend on the processor")."""
     missing_checkpoints: str = "error"
     """``error``: a row whose checkpoint is missing stops the run. ``skip``: the row is shown as missing."""
     scenes: SceneSelection = field(default_factory=SceneSelection)

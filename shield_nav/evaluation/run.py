@@ -49,6 +49,7 @@ from shield_nav.provenance import (
     cpu_simd,
     format_differences,
     manifest_record,
+    numpy_simd_targets,
     package_versions,
     version_differences,
 )
@@ -222,7 +223,8 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
     ident = _identity(prep)
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()
     arithmetic = {"cpu_simd": cpu_simd(), "packages": package_versions(),  # what the flights' arithmetic ran on
-                  "openblas_coretype": os.environ.get("OPENBLAS_CORETYPE")}  # fmt: skip
+                  "openblas_coretype": os.environ.get("OPENBLAS_CORETYPE"),
+                  "numpy_simd": numpy_simd_targets()}  # fmt: skip
     man_path = os.path.join(out_dir, "manifest.json")
     if os.path.exists(man_path):
         with open(man_path) as f:

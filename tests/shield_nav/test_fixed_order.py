@@ -151,15 +151,20 @@ def test_a_fixed_order_run_records_its_network_and_repeats(tmp_path):
     assert [t["steps"] for t in a] == [t["steps"] for t in b] and all(t["steps"] > 0 for t in a)
 
 
-def test_the_pinned_blas_environment_by_hand():
-    from shield_nav.provenance import BLAS_CORE, pinned_blas_environment
+def test_the_pinned_arithmetic_environment_by_hand():
+    from shield_nav.provenance import BLAS_CORE
+    from shield_nav.provenance import pinned_arithmetic_environment as pin
 
     assert BLAS_CORE == "Prescott"
-    env = pinned_blas_environment({"A": "1"}, "x86_64")
-    assert env == {"A": "1", "OPENBLAS_CORETYPE": "Prescott"}
-    assert pinned_blas_environment({"OPENBLAS_CORETYPE": "Haswell"}, "x86_64")["OPENBLAS_CORETYPE"] == "Prescott"
-    assert pinned_blas_environment({"OPENBLAS_CORETYPE": "Prescott"}, "x86_64") is None  # already pinned
-    assert pinned_blas_environment({}, "aarch64") is None  # other kernel names; no claim off x86-64
+    env = pin({"A": "1"}, "x86_64", ["X86_V3", "X86_V4"])
+    assert env == {"A": "1", "OPENBLAS_CORETYPE": "Prescott", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4"}
+    assert pin({"A": "1"}, "x86_64", []) == {"A": "1", "OPENBLAS_CORETYPE": "Prescott"}  # a baseline-only numpy
+    assert pin({"OPENBLAS_CORETYPE": "Haswell"}, "x86_64", [])["OPENBLAS_CORETYPE"] == "Prescott"
+    assert pin({"OPENBLAS_CORETYPE": "Prescott"}, "x86_64", []) is None  # already pinned
+    # A target numpy still uses is switched off beside one the caller had switched off already.
+    env = pin({"OPENBLAS_CORETYPE": "Prescott", "NPY_DISABLE_CPU_FEATURES": "AVX512_SPR"}, "x86_64", ["X86_V4"])
+    assert env["NPY_DISABLE_CPU_FEATURES"] == "AVX512_SPR X86_V4"
+    assert pin({}, "aarch64", ["ASIMD"]) is None  # other kernel names; no claim off x86-64
 
 
 def test_eval_cli_restarts_a_fixed_order_run_with_the_pinned_blas_kernels(tmp_path):
@@ -171,14 +176,14 @@ def test_eval_cli_restarts_a_fixed_order_run_with_the_pinned_blas_kernels(tmp_pa
     cfg.write_text(yaml.safe_dump({"name": "tiny", "configurations": ["goal_seeking"], "scenes": {"family": "ablation",
                                    "indices": [7]}, "speeds": [9.0], "trials_per_scene": 1, "plots": False,
                                    "network": "fixed_order"}))  # fmt: skip
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES")}
     cmd = [sys.executable, "eval.py", "--config", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
     assert res.returncode == 0, res.stderr[-2000:]
     man = json.loads((tmp_path / "out" / "manifest.json").read_text())
     if platform.machine().lower() in ("x86_64", "amd64"):
-        assert "restarting with OPENBLAS_CORETYPE=Prescott" in res.stderr
-        assert man["openblas_coretype"] == "Prescott"
+        assert "restarting with OPENBLAS_CORETYPE=Prescott NPY_DISABLE_CPU_FEATURES=" in res.stderr
+        assert man["openblas_coretype"] == "Prescott" and man["numpy_simd"] == []  # numpy's baseline loops only
     else:
         assert man["openblas_coretype"] is None
     # The default network leaves OpenBLAS to choose (the tables' flights).
@@ -186,4 +191,7 @@ def test_eval_cli_restarts_a_fixed_order_run_with_the_pinned_blas_kernels(tmp_pa
     res = subprocess.run([*cmd[:-3], "--out", str(tmp_path / "out2"), "--no-progress"], cwd=ROOT,
                          capture_output=True, text=True, timeout=300, env=env)  # fmt: skip
     assert res.returncode == 0 and "restarting" not in res.stderr
-    assert json.loads((tmp_path / "out2" / "manifest.json").read_text())["openblas_coretype"] is None
+    man2 = json.loads((tmp_path / "out2" / "manifest.json").read_text())
+    from shield_nav.provenance import numpy_simd_targets
+
+    assert man2["openblas_coretype"] is None and man2["numpy_simd"] == numpy_simd_targets()

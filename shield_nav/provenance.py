@@ -110,9 +110,11 @@ def numpy_simd_targets() -> list[str]:
     and picks the best one the processor has when it loads; its AVX-512 loops round differently from its baseline
     ones. ``NPY_DISABLE_CPU_FEATURES`` switches targets off at load; a switched-off target is not listed here.
     """
-    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
-
-    return [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+    try:  # numpy >= 2
+        from numpy._core import _multiarray_umath as umath
+    except ImportError:  # numpy 1.26, which pyproject.toml allows
+        from numpy.core import _multiarray_umath as umath  # type: ignore[no-redef]
+    return [t for t in umath.__cpu_dispatch__ if umath.__cpu_features__.get(t)]
 
 
 def pinned_arithmetic_environment(environ: dict | None = None, machine: str | None = None,

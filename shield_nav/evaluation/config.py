@@ -124,13 +124,17 @@ class EvalConfig:
     """Extra (or overriding) row definitions."""
     checkpoints: dict[str, str] = field(default_factory=lambda: dict(BUILTIN_CHECKPOINTS))
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""
-    network: str = "export"
-    """How a policy's network is run. ``export``: the exported file found (``policy.onnx`` through onnxruntime, else
-    TorchScript ``policy.pt``), with the processor's fastest kernels, whose sums differ in the last bits from one
-    processor kind to another. ``fixed_order``: the weights of the TorchScript export ``policy.pt`` run by
-    :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations; ``eval.py`` then also pins
-    OpenBLAS's and numpy's kernels (:func:`shield_nav.provenance.pinned_arithmetic_environment`), so the flights do
-    not depend on the x86-64 processor (docs/evaluation.md, "A flight that does not depend on the processor")."""
+    network: str = "fixed_order"
+    """How a policy's network is run. ``fixed_order`` (the default since 2026-12-02): the weights of the TorchScript
+    export ``policy.pt`` run by :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations;
+    ``eval.py`` then also pins OpenBLAS's and numpy's kernels
+    (:func:`shield_nav.provenance.pinned_arithmetic_environment`), so its flights do not depend on the x86-64
+    processor (docs/evaluation.md, "A flight that does not depend on the processor"). An evaluation called in a
+    process that is not pinned (a training pipeline's selection, :func:`~shield_nav.evaluation.evaluate` from your
+    own code) runs the same network with the kernels that process has; its manifest records them. ``export``: the
+    exported file found (``policy.onnx`` through onnxruntime, else TorchScript ``policy.pt``) with the processor's
+    fastest kernels (the network about 7 x cheaper per env and step), whose sums differ in the last bits from one
+    processor kind to another."""
     missing_checkpoints: str = "error"
     """``error``: a row whose checkpoint is missing stops the run. ``skip``: the row is shown as missing."""
     scenes: SceneSelection = field(default_factory=SceneSelection)

@@ -105,9 +105,9 @@ def test_ensemble_bad_input_is_named(tmp_path):
 def test_ensemble_flies_behind_the_shield_in_the_harness(ensemble_dir, tmp_path):
     cfg = E.load_eval_config(None, ["name=tiny", "configurations=[full]", "scenes.family=ablation",
                                     "scenes.indices=[7]", "speeds=[9.0]", "trials_per_scene=1", "plots=false",
-                                    f"checkpoints.full={ensemble_dir}",
+                                    f"checkpoints.full={ensemble_dir}", "network=export",
                                     "env_overrides=[episode.timeout_factor=0.05]"])  # fmt: skip
-    E.evaluate(cfg, str(tmp_path / "out"), progress=False)
+    E.evaluate(cfg, str(tmp_path / "out"), progress=False)  # an ensemble flies through its export (not fixed_order)
     man = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert man["checkpoints"]["full"]["sha256"] == E.load_policy(ensemble_dir).info.sha256
     (trial,) = json.loads((tmp_path / "out" / "trials.json").read_text())

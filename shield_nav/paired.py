@@ -32,7 +32,13 @@ Several pairs (``A1 B1 A2 B2 ...``) are replicates of one comparison, e.g. the s
 two training seeds: each pair is reported on its own, then **pooled**, the discordant pairs of all replicates summed
 into one exact McNemar test. Under "A and B are equally good" every discordant pair is still a fair coin whichever
 replicate it comes from, so the pooled test is exact, and it folds the replicates' training noise into the
-comparison instead of resting on one training run.
+comparison instead of resting on one training run. But it counts trials, not replicates: when replicates differ
+from each other more than the trials of one replicate do (two training seeds of one recipe often disagree on as
+many trials as two recipes), a pooled p-value can be small where a claim about the *recipes* is not supported. So
+the pooled report adds a **replicate-level** test, each replicate one observation: B's success rate minus A's, in
+points, per replicate; the two-sided one-sample t-test of their mean against 0 (``p_t``, at least two replicates)
+and the exact sign test of how many are positive against negative (``p_sign``, ties left out). A claim that one
+recipe is better than another should hold at this level.
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import math
 import os
 from typing import Any
 
@@ -54,6 +61,7 @@ __all__ = [
     "over_tops_note",
     "paired_outcomes",
     "paired_trials",
+    "replicate_test",
     "row_trials",
 ]
 
@@ -213,7 +221,36 @@ def compare_pooled(specs: list[tuple[str, str]], speeds: list[float] | None = No
         "a_over": _sum_or_none(r["a_over"] for r in pairs), "b_over": _sum_or_none(r["b_over"] for r in pairs),
         "below_tops": below_tops,
     }  # fmt: skip
+    pooled["replicate_level"] = replicate_test([100.0 * (r["b_success"] - r["a_success"]) for r in pairs])
     return {"pairs": pairs, "pooled": pooled}
+
+
+def replicate_test(differences: list[float]) -> dict:
+    """Each replicate one observation: tests of ``differences`` (B's success rate minus A's, points) against 0.
+
+    ``p_t`` is the two-sided one-sample t-test of their mean (None with fewer than two replicates; with all
+    differences equal it is 1 when they are 0 and 0 otherwise, the limit of the t statistic); ``p_sign`` the exact
+    two-sided sign test of the positive against the negative differences (zeros left out).
+    """
+    d = [float(x) for x in differences]
+    if not d or not all(math.isfinite(x) for x in d):
+        raise ValueError(f"replicate differences must be finite and not empty, got {d}")
+    k = len(d)
+    mean = sum(d) / k
+    p_t: float | None = None
+    if k >= 2:
+        sd = math.sqrt(sum((x - mean) ** 2 for x in d) / (k - 1))
+        if sd == 0.0:
+            p_t = 1.0 if mean == 0.0 else 0.0
+        else:
+            from scipy.stats import t as student_t
+
+            p_t = float(2.0 * student_t.sf(abs(mean) / (sd / math.sqrt(k)), k - 1))
+    positive, negative = sum(x > 0 for x in d), sum(x < 0 for x in d)
+    return {
+        "differences": d, "mean": mean, "p_t": p_t,
+        "positive": positive, "negative": negative, "p_sign": mcnemar_exact(positive, negative),
+    }  # fmt: skip
 
 
 def _sum_or_none(values: Any) -> int | None:
@@ -311,6 +348,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\npooled over {p['replicates']} replicates, {p['n']} paired trials: "
               f"A {100 * p['a_success']:.1f} %, B {100 * p['b_success']:.1f} %; discordant: A only {p['a_only']}, "
               f"B only {p['b_only']}; exact McNemar p = {p['p_mcnemar']:.2g}")  # fmt: skip
+        r = p["replicate_level"]
+        p_t = "n/a (one replicate)" if r["p_t"] is None else f"{r['p_t']:.2g}"
+        print(f"replicate level (each replicate one observation; B - A in points): "
+              f"{', '.join(f'{x:+.1f}' for x in r['differences'])}; mean {r['mean']:+.1f}; one-sample t p = {p_t}; "
+              f"signs {r['positive']}+ / {r['negative']}- p = {r['p_sign']:.2g}")  # fmt: skip
         if note := over_tops_note(p):
             print(note)
     return 0

@@ -5,7 +5,15 @@ import math
 
 import pytest
 
-from shield_nav.paired import compare, compare_pooled, main, mcnemar_exact, over_tops_note, paired_outcomes
+from shield_nav.paired import (
+    compare,
+    compare_pooled,
+    main,
+    mcnemar_exact,
+    over_tops_note,
+    paired_outcomes,
+    replicate_test,
+)
 
 
 def test_mcnemar_exact_by_hand():
@@ -86,11 +94,49 @@ def test_replicates_are_reported_and_pooled(tmp_path, capsys):
     main([*specs[0], *specs[1]])
     out = capsys.readouterr().out
     assert "pooled over 2 replicates, 10 paired trials: A 40.0 %, B 70.0 %; discordant: A only 2, B only 5" in out
+    # Replicate level: B - A = 100 (5/6 - 3/6) = 33.3 and 100 (2/4 - 1/4) = 25 points; mean 175/6, sd 25/(3 sqrt 2),
+    # so t = 7 on one degree of freedom (a Cauchy variable): p = 1 - (2/pi) atan(7).
+    level = pooled["replicate_level"]
+    assert level["differences"] == pytest.approx([100 / 3, 25.0]) and level["mean"] == pytest.approx(175 / 6)
+    assert level["p_t"] == pytest.approx(1 - 2 / math.pi * math.atan(7.0))
+    assert (level["positive"], level["negative"], level["p_sign"]) == (2, 0, pytest.approx(0.5))
+    assert "B - A in points): +33.3, +25.0; mean +29.2; one-sample t p = 0.09; signs 2+ / 0- p = 0.5" in out
     main([*specs[0], *specs[1], "--json"])
     assert json.loads(capsys.readouterr().out.strip())["pooled"]["b_only"] == 5
     with pytest.raises(SystemExit) as exc:
         main([*specs[0], specs[1][0]])  # an A without its B
     assert exc.value.code == 2
+
+
+def test_replicate_level_test_counts_each_replicate_once(tmp_path):
+    """Three replicates of 10 trials whose B - A differ by 1, 2 and 6 successes: the pooled trial-level test and the
+    replicate-level t and sign tests, by hand."""
+    s, c = "success", "collision"
+    for name, (a_wins, b_wins) in {"r1": (5, 6), "r2": (5, 7), "r3": (2, 8)}.items():
+        _write(tmp_path / name, "a", [s] * a_wins + [c] * (10 - a_wins))
+        _write(tmp_path / name, "b", [s] * b_wins + [c] * (10 - b_wins))
+    pooled = compare_pooled([(f"{tmp_path / r}:a", f"{tmp_path / r}:b") for r in ("r1", "r2", "r3")])["pooled"]
+    assert (pooled["a_only"], pooled["b_only"]) == (0, 9) and pooled["p_mcnemar"] == pytest.approx(2 * 0.5**9)
+    level = pooled["replicate_level"]
+    # Differences 10, 20, 60 points: mean 30, variance (400 + 100 + 900) / 2 = 700, t^2 = 900 / (700 / 3) = 27 / 7.
+    # On two degrees of freedom P(|T| > t) = 1 - t / sqrt(2 + t^2) = 1 - sqrt(27 / 41).
+    assert level["differences"] == pytest.approx([10.0, 20.0, 60.0]) and level["mean"] == pytest.approx(30.0)
+    assert level["p_t"] == pytest.approx(1 - math.sqrt(27 / 41))
+    assert (level["positive"], level["negative"]) == (3, 0) and level["p_sign"] == pytest.approx(2 * 0.5**3)
+    # So nine discordant trials all one way (p = 0.0039) are three replicates (p = 0.25 by signs, 0.19 by t).
+
+
+def test_replicate_test_edge_cases_and_bad_input():
+    one = replicate_test([5.0])
+    assert one["p_t"] is None and (one["positive"], one["negative"], one["p_sign"]) == (1, 0, 1.0)
+    assert replicate_test([0.0, 0.0])["p_t"] == 1.0 and replicate_test([0.0, 0.0])["p_sign"] == 1.0
+    assert replicate_test([4.0, 4.0, 4.0])["p_t"] == 0.0  # no spread at all: the t statistic's limit
+    mixed = replicate_test([3.0, -1.0, 0.0, 2.0])  # the zero is a tie: 2 positive, 1 negative
+    assert (mixed["positive"], mixed["negative"], mixed["p_sign"]) == (2, 1, 1.0)
+    with pytest.raises(ValueError, match="finite"):
+        replicate_test([1.0, float("nan")])
+    with pytest.raises(ValueError, match="not empty"):
+        replicate_test([])
 
 
 def test_mcnemar_exact_equals_the_hand_sum_of_binomial_terms():

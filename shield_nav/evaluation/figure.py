@@ -12,6 +12,13 @@ below (with the target speed as a dashed line). Where a row reproduces one of th
 ``dijkstra``, ``dijkstra_cbf``, ``full``) the paper's numbers (:mod:`shield_nav.evaluation.paper`) are drawn dashed
 in the same colour; ``--paper-methods`` adds the paper's other Table II methods (default: DiffPhys, its strongest).
 The README's figure is made this way (docs/results.md gives the command).
+
+``--seeds`` draws training replicates instead: every ``OUT`` given to a table is one training seed of the same rows
+(``OUT+OUT2`` joins one seed's folders, e.g. a seed whose 3 m/s cell was flown apart; a speed in two of them is
+refused). Each seed's success rate is drawn thin, and the rate pooled over the seeds (all their trials summed, with
+the 95 % Wilson interval of the sum and the realised speed weighted by successes) thick, so one sees at a glance
+whether two rows differ by more than the seeds of one row do. docs/results.md's "Ordering at 5-9 m/s" figure is made
+this way.
 """
 
 from __future__ import annotations
@@ -24,10 +31,11 @@ import sys
 import numpy as np
 
 from shield_nav.evaluation.config import BUILTIN_ROWS
+from shield_nav.evaluation.metrics import wilson_interval
 from shield_nav.evaluation.paper import PAPER_SPEEDS, PAPER_TABLE_I, PAPER_TABLE_II
 from shield_nav.evaluation.plots import _plt, cell_series
 
-__all__ = ["load_rows", "main", "plot_tables", "row_series"]
+__all__ = ["load_rows", "load_seed", "main", "plot_seeds", "plot_tables", "pool_cells", "row_series"]
 
 #: Fixed colours, so a row looks the same in every panel and every figure.
 _COLOURS = {
@@ -68,6 +76,47 @@ def load_rows(specs: list[str]) -> dict[str, dict]:
                 raise ValueError(f"row {key!r} is in both {rows[key]['source']} and {out}: name one with OUT:ROW")
             rows[key] = {"label": label, "cells": summary["cells"][name], "source": out}
     return rows
+
+
+def load_seed(spec: str) -> dict[str, dict]:
+    """One training replicate, ``OUT[+OUT2...][:ROWS]``: :func:`load_rows` of each folder, a row's cells merged.
+
+    Raises:
+        ValueError: A row and speed in two of the folders (which one is the seed's?), or any :func:`load_rows` error.
+    """
+    folders, sep, names = spec.partition(":")
+    merged: dict[str, dict] = {}
+    for out in folders.split("+"):
+        for name, row in load_rows([out + sep + names]).items():
+            if name not in merged:
+                merged[name] = {"label": row["label"], "cells": dict(row["cells"]), "source": out}
+                continue
+            clash = sorted(set(merged[name]["cells"]) & set(row["cells"]), key=float)
+            if clash:
+                raise ValueError(f"{spec!r}: row {name!r} has {', '.join(clash)} m/s in both {merged[name]['source']} "
+                                 f"and {out}")  # fmt: skip
+            merged[name]["cells"].update(row["cells"])
+    return merged
+
+
+def pool_cells(cells: list[dict]) -> dict[str, dict]:
+    """One row's cells of several replicates pooled by speed.
+
+    Trials and successes summed, the Wilson interval of the sum, the realised speed weighted by each replicate's
+    successes, and ``seeds`` (how many replicates flew that speed).
+    """
+    pooled: dict[str, dict] = {}
+    for speed in sorted({k for c in cells for k, v in c.items() if v is not None}, key=float):
+        flown = [c[speed] for c in cells if c.get(speed) is not None]
+        n, k = sum(int(c["n"]) for c in flown), sum(int(c["successes"]) for c in flown)
+        with_vel = [c for c in flown if c["successes"] and c.get("vel") is not None]
+        wk = sum(c["successes"] for c in with_vel)
+        lo, hi = wilson_interval(k, n)
+        pooled[speed] = {
+            "n": n, "successes": k, "success_rate": k / n, "sr_lo": lo, "sr_hi": hi, "seeds": len(flown),
+            "vel": sum(c["vel"] * c["successes"] for c in with_vel) / wk if wk else None,
+        }  # fmt: skip
+    return pooled
 
 
 def row_series(row: dict) -> dict[str, np.ndarray]:
@@ -134,10 +183,53 @@ def plot_tables(tables: dict[str, dict[str, dict]], path: str, paper_methods: tu
     plt.close(fig)
 
 
+def plot_seeds(tables: dict[str, list[dict[str, dict]]], path: str) -> None:
+    """Draw ``{"Table I": [seed rows, ...], ...}``: every seed of a row thin, the pooled rate thick, the paper dashed.
+
+    Only rows present in every seed are drawn (a row missing from one would pool fewer seeds unnoticed).
+    """
+    if not tables:
+        raise ValueError("nothing to draw: give --table1 and/or --table2")
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(tables), figsize=(5.6 * len(tables), 4.6), squeeze=False)
+    others = iter(f"C{k}" for k in range(4, 10))
+    colours = dict(_COLOURS)
+    for col, (title, seeds) in enumerate(tables.items()):
+        common = [n for n in _ordered(seeds[0]) if all(n in s for s in seeds)]
+        if not common:
+            raise ValueError(f"{title}: no row is in every seed's folders")
+        paper = PAPER_TABLE_I if title == "Table I" else PAPER_TABLE_II
+        ax = axes[0, col]
+        for name in common:
+            colour = colours.setdefault(name, next(others, "k"))
+            for seed in seeds:
+                s = row_series(seed[name])
+                ax.plot(s["speed"], s["sr"], color=colour, lw=0.9, alpha=0.45, marker=".", ms=4)
+            cells = pool_cells([seed[name]["cells"] for seed in seeds])
+            pooled = cell_series(cells)
+            lo, hi = min(c["seeds"] for c in cells.values()), max(c["seeds"] for c in cells.values())
+            label = f"{seeds[0][name]['label']}, {lo if lo == hi else f'{lo}-{hi}'} seeds pooled"
+            ax.errorbar(pooled["speed"], pooled["sr"], yerr=pooled["err"], color=colour, lw=2.2, marker="o",
+                        capsize=3, label=label)  # fmt: skip
+            if name in paper:
+                _paper_lines(ax, None, paper[name], colour)
+        ax.set_title(f"{title}: success rate, each training seed (thin) and pooled (thick, 95 % Wilson)", fontsize=8)
+        ax.set_ylabel("success rate [%]")
+        ax.set_xlabel("target speed [m/s]")
+        ax.set_xticks(PAPER_SPEEDS)
+        ax.set_ylim(-3, 103)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
 def _paper_lines(ax_sr, ax_v, row: dict, colour: str) -> None:  # noqa: ANN001
     label = f"{row['label']}, paper"
     ax_sr.plot(PAPER_SPEEDS, row["sr"], ls="--", color=colour, marker="o", mfc="none", label=label)
-    if "vel" in row:
+    if ax_v is not None and "vel" in row:
         vel = [np.nan if v is None else v for v in row["vel"]]
         ax_v.plot(PAPER_SPEEDS, vel, ls="--", color=colour, marker="o", mfc="none", label=label)
 
@@ -152,16 +244,29 @@ def main(argv: list[str] | None = None) -> int:
         "--table2", nargs="+", default=[], metavar="OUT[:ROWS]", help="benchmark (Table II) outputs; ROWS: ROW[=AS],..."
     )
     ap.add_argument("--paper-methods", default="diffphys", help="the paper's other Table II methods, comma list")
+    ap.add_argument(
+        "--seeds",
+        action="store_true",
+        help="each OUT (OUT+OUT2: one seed's folders) is one training seed of the same rows: seeds thin, pooled thick",
+    )
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args(argv)
     try:
-        tables = {}
-        if args.table1:
-            tables["Table I"] = load_rows(args.table1)
-        if args.table2:
-            tables["Table II"] = load_rows(args.table2)
-        methods = tuple(m for m in args.paper_methods.split(",") if m)
-        plot_tables(tables, args.out, paper_methods=methods)
+        if args.seeds:
+            seeded = {
+                t: [load_seed(s) for s in specs]
+                for t, specs in (("Table I", args.table1), ("Table II", args.table2))
+                if specs
+            }
+            plot_seeds(seeded, args.out)
+        else:
+            tables = {}
+            if args.table1:
+                tables["Table I"] = load_rows(args.table1)
+            if args.table2:
+                tables["Table II"] = load_rows(args.table2)
+            methods = tuple(m for m in args.paper_methods.split(",") if m)
+            plot_tables(tables, args.out, paper_methods=methods)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -9,7 +9,8 @@ import re
 import numpy as np
 import pytest
 
-from shield_nav.evaluation.figure import load_rows, main, row_series
+from shield_nav.evaluation.figure import load_rows, load_seed, main, pool_cells, row_series
+from shield_nav.evaluation.metrics import wilson_interval
 from shield_nav.evaluation.paper import PAPER_TABLE_I, PAPER_TABLE_II
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -114,3 +115,29 @@ def test_the_command_writes_a_png_and_refuses_an_unknown_paper_method(tmp_path, 
     assert main(["--table2", b, "--paper-methods", "diffphys,rrt", "--out", str(tmp_path / "x.png")]) == 2
     assert "unknown rrt" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_seeds_are_pooled_by_speed_and_a_seed_can_span_folders(tmp_path, capsys):
+    # Seed 0 flew 3 and 5 m/s in one folder; seed 1 flew 5 m/s in one folder and 3 m/s in another.
+    s0 = _write_run(tmp_path / "s0", {"dijkstra": {"3": _cell(40, 30, 2.9), "5": _cell(40, 10, 4.0)}})
+    s1 = _write_run(tmp_path / "s1", {"dijkstra": {"5": _cell(40, 20, 4.6)}})
+    s1_3 = _write_run(tmp_path / "s1_3", {"dijkstra": {"3": _cell(40, 0, None)}})
+    seed1 = load_seed(f"{s1}+{s1_3}:dijkstra")
+    assert sorted(seed1["dijkstra"]["cells"], key=float) == ["3", "5"]
+    pooled = pool_cells([load_seed(s0)["dijkstra"]["cells"], seed1["dijkstra"]["cells"]])
+    # 3 m/s: 30 + 0 of 80, realised speed from seed 0's successes alone; 5 m/s: 30 of 80, (10 * 4.0 + 20 * 4.6) / 30.
+    assert (pooled["3"]["n"], pooled["3"]["successes"], pooled["3"]["seeds"]) == (80, 30, 2)
+    assert pooled["3"]["vel"] == pytest.approx(2.9) and pooled["5"]["vel"] == pytest.approx(132.0 / 30)
+    assert pooled["5"]["success_rate"] == pytest.approx(30 / 80)
+    assert (pooled["5"]["sr_lo"], pooled["5"]["sr_hi"]) == pytest.approx(wilson_interval(30, 80))
+    # A lone seed at a speed is pooled over that one seed.
+    assert pool_cells([{"9": _cell(10, 1, 6.0)}, {}])["9"]["seeds"] == 1
+    with pytest.raises(ValueError, match="row 'dijkstra' has 5 m/s in both"):
+        load_seed(f"{s0}+{s1}")
+    out = tmp_path / "seeds.png"
+    assert main(["--seeds", "--table1", s0, f"{s1}+{s1_3}", "--out", str(out)]) == 0
+    with open(out, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    other = _write_run(tmp_path / "other", {"distance": {"3": _cell(40, 30, 2.9)}})
+    assert main(["--seeds", "--table1", s0, other, "--out", str(tmp_path / "x.png")]) == 2
+    assert "no row is in every seed" in capsys.readouterr().err and not (tmp_path / "x.png").exists()

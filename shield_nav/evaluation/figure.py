@@ -243,7 +243,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--table2", nargs="+", default=[], metavar="OUT[:ROWS]", help="benchmark (Table II) outputs; ROWS: ROW[=AS],..."
     )
-    ap.add_argument("--paper-methods", default="diffphys", help="the paper's other Table II methods, comma list")
+    ap.add_argument(
+        "--paper-methods", default=None, help="the paper's other Table II methods, comma list (default: diffphys)"
+    )
     ap.add_argument(
         "--seeds",
         action="store_true",
@@ -251,6 +253,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args(argv)
+    if args.seeds and args.paper_methods is not None:
+        ap.error(
+            "--paper-methods draws beside the tables figure; the --seeds figure shows the formulations' paper rows only"
+        )
     try:
         if args.seeds:
             seeded = {
@@ -265,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                 tables["Table I"] = load_rows(args.table1)
             if args.table2:
                 tables["Table II"] = load_rows(args.table2)
-            methods = tuple(m for m in args.paper_methods.split(",") if m)
+            methods = tuple(m for m in (args.paper_methods or "diffphys").split(",") if m)
             plot_tables(tables, args.out, paper_methods=methods)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -141,3 +141,6 @@ def test_seeds_are_pooled_by_speed_and_a_seed_can_span_folders(tmp_path, capsys)
     other = _write_run(tmp_path / "other", {"distance": {"3": _cell(40, 30, 2.9)}})
     assert main(["--seeds", "--table1", s0, other, "--out", str(tmp_path / "x.png")]) == 2
     assert "no row is in every seed" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+    with pytest.raises(SystemExit) as exc:  # not dropped in silence: the seeds figure draws no other method
+        main(["--seeds", "--table1", s0, "--paper-methods", "diffphys", "--out", str(tmp_path / "x.png")])
+    assert exc.value.code == 2 and "--paper-methods" in capsys.readouterr().err

@@ -60,9 +60,10 @@ from shield_nav.tracking import accel_to_command
 class ExpertConfig:
     """Parameters of :class:`PlannerController` (``baselines.expert`` in an eval or train config)."""
 
-    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"commit_dist": 0.0}
+    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"commit_dist": 0.0, "narrow_tangent": True}
     """Fields added with a default that changed behaviour, and the value a config written before them means
-    (:func:`envs.config.stored_config`): route hysteresis came on by default when it was added (2026-11-27)."""
+    (:func:`envs.config.stored_config`): route hysteresis came on by default when it was added (2026-11-27), the
+    sampling tracker in the mazes when ``narrow_tangent`` was (2026-12-03)."""
 
     field_radius: float = 0.5
     """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""
@@ -226,6 +227,14 @@ class ExpertConfig:
     mppi_clearance: float = 0.5
     """``mppi``: ESDF below which a predicted position pays ``mppi_w_clear`` per square metre [m]."""
     mppi_w_clear: float = 400.0
+    narrow_tangent: bool = False
+    """True: envs that descend the narrow field (box mazes) fly the ``tangent`` command whatever ``tracker`` says
+    (the behaviour until 2026-12-03, which cuts the inside of the mazes' right-angle turns). False: they fly the
+    ``preview``/``mppi`` tracker's own command too, and with ``mppi`` its clearance term there reads
+    ``mppi_narrow_clearance`` (docs/expert.md, "The sampling tracker in the mazes")."""
+    mppi_narrow_clearance: float = 0.3
+    """``mppi``: the clearance term's ESDF threshold for envs on the narrow field [m] (``mppi_clearance`` cannot
+    be kept in corridors narrower than twice it)."""
     """``mppi``: weight of the clearance shortfall [1/m^2]."""
     mppi_w_crash: float = 1000.0
     """``mppi``: cost of a predicted position closer than the vehicle's collision radius."""
@@ -274,7 +283,7 @@ class ExpertConfig:
                      "commit_slack", "predict_s", "predict_min_speed", "route_tol", "preview_q_pos",
                      "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag",
                      "accel_budget", "mppi_sigma_z", "mppi_q_pos", "mppi_q_vel", "mppi_r_acc",
-                     "mppi_clearance", "mppi_w_clear", "mppi_w_crash"):  # fmt: skip
+                     "mppi_clearance", "mppi_w_clear", "mppi_w_crash", "mppi_narrow_clearance"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -879,7 +888,7 @@ class PlannerController:
             a_p, v_p = self._preview(model)
             if ec.tracker == "mppi":
                 a_p = self._mppi(env, model, a_p)
-            wide = ~self.fallback[:, None]
+            wide = ~self.fallback[:, None] if ec.narrow_tangent else np.ones((n, 1), dtype=bool)
             a, v_ref = np.where(wide, a_p, a), np.where(wide, v_p, v_ref)
         psi = np.arctan2(chord[:, 1], chord[:, 0])
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
@@ -918,10 +927,11 @@ class PlannerController:
                          env.cfg.vehicle.gravity, ec.max_tilt_deg, ec.mppi_vert_accel)  # fmt: skip
         ef = env.field_stack.kernel_fields(env.scene_id_buf)
         costs = np.empty(u.shape[:2])
+        clearance = np.where(self.fallback, ec.mppi_narrow_clearance, ec.mppi_clearance)
         rollout_costs(np.ascontiguousarray(model["x0"]), u, np.ascontiguousarray(model["drag"]),
                       np.ascontiguousarray(model["ref_p"][:, :t]), np.ascontiguousarray(model["ref_v"][:, :t]),
                       m.a_mat, m.b_vec, m.e_vec, ec.mppi_q_pos, ec.mppi_q_vel, ec.mppi_r_acc, ec.mppi_w_clear,
-                      ec.mppi_clearance, ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7],
+                      clearance, ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7],
                       costs, self._z_cap(env))  # fmt: skip
         m.plan = path_integral_mean(u, costs, ec.mppi_temperature)
         return m.plan[:, 0]

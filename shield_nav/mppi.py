@@ -52,7 +52,7 @@ def rollout_costs(
     q_vel: float,
     r_acc: float,
     w_clear: float,
-    clearance: float,
+    clearance: np.ndarray,
     w_crash: float,
     radius: float,
     e: tuple,
@@ -64,7 +64,8 @@ def rollout_costs(
     ``drag`` (N, 3) is held; ``ref_p``, ``ref_v`` (N, T, 3) the reference at the ends of the T intervals;
     ``a_mat`` (3, 3), ``b_vec`` and ``e_vec`` (3,) the per-axis discretisation (:func:`shield_nav.preview.discretise`);
     ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin, res, esdf)``; ``z_cap`` (N,) a height per
-    env whose plane counts as a ceiling in the clearance and crash terms (``inf``: none). The inputs must already lie
+    env whose plane counts as a ceiling in the clearance and crash terms (``inf``: none); ``clearance`` (N,) the ESDF
+    below which each env's predicted positions pay ``w_clear``. The inputs must already lie
     in the flyable set (:func:`clamp_inputs`).
     """
     n, s_count, t_count, _ = u.shape
@@ -89,7 +90,7 @@ def rollout_costs(
             d = trilinear_point(e[0][i], st[0, 0], st[1, 0], st[2, 0], e[1], e[2], e[3], e[4], e[5], e[6], e[5],
                                 True, False, False)[0]  # fmt: skip
             d = min(d, z_cap[i] - st[2, 0])
-            gap = clearance - d
+            gap = clearance[i] - d
             if gap > 0.0:
                 cost += w_clear * gap * gap
             if d < radius:

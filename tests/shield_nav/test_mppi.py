@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from envs.config import ConfigError
+from envs.config import ConfigError, load_config, stored_config
 from envs.fields import scene_field_stack
 from envs.navigation import NavigationEnv
 from envs.scenes import Box, Scene
@@ -32,8 +32,9 @@ def _costs(fields, x0, u, ref_p, ref_v, z_cap=None, **w):
     out = np.empty((n, s))
     kw = {"q_pos": 1.0, "q_vel": 0.3, "r_acc": 0.001, "w_clear": 400.0, "clearance": 0.5, "w_crash": 1000.0}
     kw.update(w)
+    clearance = np.broadcast_to(np.asarray(kw["clearance"], dtype=float), (n,)).copy()
     rollout_costs(x0, u, np.zeros((n, 3)), ref_p, ref_v, a_m, b, e, kw["q_pos"], kw["q_vel"], kw["r_acc"],
-                  kw["w_clear"], kw["clearance"], kw["w_crash"], 0.2, fields, out,
+                  kw["w_clear"], clearance, kw["w_crash"], 0.2, fields, out,
                   np.full(n, np.inf) if z_cap is None else np.asarray(z_cap, dtype=float))  # fmt: skip
     return out
 
@@ -71,6 +72,21 @@ def test_clearance_and_crash_costs_read_the_esdf(esdf_fields):
     ref_p = np.repeat(x0[:, None, :, 0], steps, axis=1)
     out = _costs(fields, x0, np.zeros((2, 1, steps, 3)), ref_p, np.zeros((2, steps, 3)))
     np.testing.assert_allclose(out[:, 0], steps * (400.0 * (0.5 - d) ** 2 + np.array([0.0, 1000.0])), rtol=1e-9)
+
+
+def test_each_env_reads_its_own_clearance_threshold(esdf_fields):
+    """Both envs hover 0.3 m in front of the box's face: threshold 0.5 pays (0.5 - d)^2 x 400 per step, threshold
+    0.3 (the narrow field's) about nothing, and neither is within the 0.2 m radius."""
+    stack, fields = esdf_fields
+    steps = 3
+    x0 = np.zeros((2, 3, 3))
+    x0[:, :, 0] = (4.2, 0.0, 1.5)
+    d = stack.esdf(np.zeros(2, dtype=np.int64), x0[:, :, 0])
+    ref_p = np.repeat(x0[:, None, :, 0], steps, axis=1)
+    out = _costs(fields, x0, np.zeros((2, 1, steps, 3)), ref_p, np.zeros((2, steps, 3)), clearance=[0.5, 0.3])
+    want = steps * 400.0 * np.maximum(np.array([0.5, 0.3]) - d, 0.0) ** 2
+    np.testing.assert_allclose(out[:, 0], want, rtol=1e-9, atol=1e-12)
+    assert out[0, 0] == pytest.approx(steps * 400.0 * 0.2**2, rel=0.25) and out[1, 0] < 0.05 * out[0, 0]
 
 
 def test_a_height_cap_counts_as_a_ceiling_in_the_clearance_and_crash_terms(esdf_fields):
@@ -151,6 +167,8 @@ def test_mppi_keys_are_checked_by_name():
                      ("mppi_w_clear", -1.0), ("mppi_sigma", 0.0)):  # fmt: skip
         with pytest.raises(ConfigError, match=key):
             ExpertConfig(tracker="mppi", **{key: bad}).validate(prefix="baselines.expert.")
+    with pytest.raises(ConfigError, match="mppi_narrow_clearance"):
+        ExpertConfig(mppi_narrow_clearance=-0.1).validate(prefix="baselines.expert.")
 
 
 def _nav_env(n: int, speed: float, **over) -> NavigationEnv:
@@ -192,3 +210,61 @@ def test_with_vanishing_noise_the_first_command_is_the_preview_trackers():
     assert inside.any()
     np.testing.assert_allclose(cmd_m[inside], cmd_p[inside], atol=1e-6)
     assert mppi.mppi.plan.shape == (4, ec.mppi_steps, 3)
+
+
+def _maze_env(n: int) -> NavigationEnv:
+    """Benchmark scene 14, a box maze: with 0.5 m of inflation every env descends the narrow field."""
+    env = NavigationEnv(num_envs=n, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
+                                       "curriculum.enabled": False, "episode.target_speeds": [5.0],
+                                       "episode.speed_range": []})  # fmt: skip
+    env.reset(seed=2)
+    return env
+
+
+def test_narrow_field_envs_fly_the_sampled_command_with_narrow_tangent_off():
+    """``narrow_tangent: true`` (until 2026-12-03): the maze's envs get the tangent command. ``false`` (the default)
+    with vanishing noise: their command is the preview tracker's (clamped), as in the open scenes."""
+    env = _maze_env(3)
+    tangent = PlannerController(BaselineConfig(expert=ExpertConfig(commit_dist=0.0, narrow_tangent=True)))
+    tangent.commands(env)
+    assert tangent.fallback.all()
+    quiet = {"commit_dist": 0.0, "mppi_sigma": 1e-9, "mppi_sigma_z": 0.0}
+    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="preview", narrow_tangent=False,
+                                                                commit_dist=0.0)))  # fmt: skip
+    prev.commands(env)
+    mppi = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="mppi", narrow_tangent=False, **quiet)))
+    mppi.commands(env)
+    assert mppi.fallback.all() and prev.fallback.all()
+    ec = ExpertConfig()
+    want = clamp_inputs(prev.last["a"], env.cfg.vehicle.gravity, ec.max_tilt_deg, ec.mppi_vert_accel)
+    np.testing.assert_allclose(mppi.last["a"], want, atol=1e-6)
+    assert np.abs(tangent.last["a"] - mppi.last["a"]).max() > 0.1  # the tangent command is another one
+    # ... and it is the tangent rule's: v_ref = v_r unit(P[k+2] - P[k]) + k_x (P[k] - (p + v lag))
+    last, ec = tangent.last, tangent.ec
+    rows, k = np.arange(3), tangent.last["k_ref"]
+    p0, p1 = last["path"][rows, k], last["path"][rows, k + ec.tangent_span]
+    pos, vel = env.local_pos, env.vehicles.vel_w
+    expect = last["speed"][rows, k, None] * (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
+    np.testing.assert_allclose(last["v_ref"], expect + ec.k_x * (p0 - (pos + vel * ec.lag_s)), rtol=1e-9, atol=1e-12)
+
+
+def test_a_config_written_before_narrow_tangent_keeps_the_tangent_command_in_the_mazes():
+    stored = stored_config(ExpertConfig, {"tracker": "mppi", "commit_dist": 1.0})
+    assert stored["narrow_tangent"] is True and ExpertConfig().narrow_tangent is False
+    assert load_config(BaselineConfig, overrides={"expert": stored}).expert.narrow_tangent is True
+
+
+def test_narrow_field_envs_read_the_narrow_clearance_threshold():
+    """Same seed, same state: on the narrow field, moving ``mppi_clearance`` does not change the sampled command,
+    moving ``mppi_narrow_clearance`` does (the threshold enters the rollout costs of those envs only)."""
+    env = _maze_env(3)
+
+    def first_command(**kw):
+        ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(narrow_tangent=False, commit_dist=0.0, **kw)))
+        ctrl.commands(env)
+        assert ctrl.fallback.all()
+        return ctrl.last["a"]
+
+    base = first_command()
+    np.testing.assert_array_equal(first_command(mppi_clearance=2.0), base)
+    assert np.abs(first_command(mppi_narrow_clearance=2.0) - base).max() > 1e-3

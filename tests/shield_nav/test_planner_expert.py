@@ -607,6 +607,13 @@ def test_expert_cost_bench_times_a_variant_and_names_a_bad_key(capsys):
     line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert line["expert"] == {"commit_dist": 1} == res["expert"]
     assert line["num_envs"] == 2 and line["expert_us_per_label"] > 0
+    assert line["scenes"] == "ablation:0,1,2,3,4,5,6,7" and line["narrow_share"] == 0.0
     with pytest.raises(SystemExit):
         main(["--steps", "2", "--set", "commit_dits=1"])
     assert "commit_dits" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--steps", "2", "--scenes", "benchmark:16"])
+    assert "indices [16] out of range" in capsys.readouterr().err
+    # The box mazes: labels there descend the narrow field (0.5 m of inflation closes their corridors).
+    maze = main(["--steps", "2", "--num-envs", "2", "--scenes", "benchmark:14"])
+    assert maze["scenes"] == "benchmark:14" and 0.0 < maze["narrow_share"] <= 1.0

@@ -169,12 +169,13 @@ def test_preview_tracker_commands_the_gains_first_input():
 @pytest.mark.parametrize("tracker", ["preview", "mppi"])
 def test_preview_tracker_hands_the_narrow_field_to_the_tangent_tracker(tracker):
     """Where the inflated field closes the way (benchmark scene 14, a box maze) the expert descends the narrow field;
-    there the preview tracker's command, and the sampling tracker's round it, is the tangent tracker's."""
+    with ``narrow_tangent: true`` (the behaviour until 2026-12-03) the preview tracker's command there, and the
+    sampling tracker's round it, is the tangent tracker's (the default flies its own: tests/shield_nav/test_mppi.py)."""
     env = NavigationEnv(num_envs=4, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
                                        "curriculum.enabled": False})  # fmt: skip
     env.reset(seed=2)
     env.vehicles.vel_w[:] = np.array([1.0, -0.5, 0.0])
-    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker=tracker)))
+    prev = PlannerController(BaselineConfig(expert=ExpertConfig(tracker=tracker, narrow_tangent=True)))
     cmd_p = prev.commands(env)
     tang = PlannerController(BaselineConfig(expert=ExpertConfig(tracker="tangent")))
     cmd_t = tang.commands(env)

@@ -227,6 +227,7 @@ class ExpertConfig:
     mppi_clearance: float = 0.5
     """``mppi``: ESDF below which a predicted position pays ``mppi_w_clear`` per square metre [m]."""
     mppi_w_clear: float = 400.0
+    """``mppi``: weight of the clearance shortfall [1/m^2]."""
     narrow_tangent: bool = False
     """True: envs that descend the narrow field (box mazes) fly the ``tangent`` command whatever ``tracker`` says
     (the behaviour until 2026-12-03, which cuts the inside of the mazes' right-angle turns). False: they fly the
@@ -235,7 +236,6 @@ class ExpertConfig:
     mppi_narrow_clearance: float = 0.3
     """``mppi``: the clearance term's ESDF threshold for envs on the narrow field [m] (``mppi_clearance`` cannot
     be kept in corridors narrower than twice it)."""
-    """``mppi``: weight of the clearance shortfall [1/m^2]."""
     mppi_w_crash: float = 1000.0
     """``mppi``: cost of a predicted position closer than the vehicle's collision radius."""
     mppi_vert_accel: float = 5.0

@@ -65,8 +65,8 @@ def rollout_costs(
     ``a_mat`` (3, 3), ``b_vec`` and ``e_vec`` (3,) the per-axis discretisation (:func:`shield_nav.preview.discretise`);
     ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin, res, esdf)``; ``z_cap`` (N,) a height per
     env whose plane counts as a ceiling in the clearance and crash terms (``inf``: none); ``clearance`` (N,) the ESDF
-    below which each env's predicted positions pay ``w_clear``. The inputs must already lie
-    in the flyable set (:func:`clamp_inputs`).
+    below which each env's predicted positions pay ``w_clear``. The inputs must already lie in the flyable set
+    (:func:`clamp_inputs`).
     """
     n, s_count, t_count, _ = u.shape
     for job in numba.prange(n * s_count):  # rollouts are independent: numba's threads split them

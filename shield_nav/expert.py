@@ -888,8 +888,11 @@ class PlannerController:
             a_p, v_p = self._preview(model)
             if ec.tracker == "mppi":
                 a_p = self._mppi(env, model, a_p)
-            wide = ~self.fallback[:, None] if ec.narrow_tangent else np.ones((n, 1), dtype=bool)
-            a, v_ref = np.where(wide, a_p, a), np.where(wide, v_p, v_ref)
+            if ec.narrow_tangent:  # envs on the narrow field keep the tangent command
+                wide = ~self.fallback[:, None]
+                a, v_ref = np.where(wide, a_p, a), np.where(wide, v_p, v_ref)
+            else:
+                a, v_ref = a_p, v_p
         psi = np.arctan2(chord[:, 1], chord[:, 0])
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a, "k_ref": k_ref}

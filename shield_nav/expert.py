@@ -60,10 +60,11 @@ from shield_nav.tracking import accel_to_command
 class ExpertConfig:
     """Parameters of :class:`PlannerController` (``baselines.expert`` in an eval or train config)."""
 
-    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"commit_dist": 0.0, "narrow_tangent": True}
+    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"commit_dist": 0.0, "narrow_tangent": True, "band_iters": 0}
     """Fields added with a default that changed behaviour, and the value a config written before them means
     (:func:`envs.config.stored_config`): route hysteresis came on by default when it was added (2026-11-27), the
-    sampling tracker in the mazes when ``narrow_tangent`` was (2026-12-03)."""
+    sampling tracker in the mazes when ``narrow_tangent`` was (2026-12-03); the elastic band was added off
+    (2026-11-27) and came on by default later (2026-12-03), so a config written before the key means it off."""
 
     field_radius: float = 0.5
     """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""
@@ -100,8 +101,9 @@ class ExpertConfig:
     """Clearance the smoothing may give up below ``field_radius`` [m]."""
     smooth_passes: int = 1
     """How many times the moving average (with its clearance check) is applied to the traced path."""
-    band_iters: int = 0
-    """Iterations of an elastic band run on the path after the moving average (0: off). Each iteration moves every
+    band_iters: int = 10
+    """Iterations of an elastic band run on the path after the moving average (0: off; 10 since 2026-12-03, with the
+    ``mppi`` tracker; docs/expert.md, "The elastic band with the sampling tracker"). Each iteration moves every
     sample between the first and the last ``band_step`` of the way to the midpoint of its neighbours, then pushes a
     sample whose clearance (ESDF) is below ``band_clearance`` out along the ESDF gradient to it; a sample the
     iteration would leave closer to an obstacle than both that floor and its clearance before stays put. It lowers

@@ -384,8 +384,8 @@ def test_resume_of_a_folder_written_before_a_config_key_existed(tmp_path, monkey
     man_path = os.path.join(out, "manifest.json")
     with open(man_path) as f:
         man = json.load(f)
-    # What a folder written before scenes.seed and baselines.expert.band_iters existed holds.
-    del man["config"]["scenes"]["seed"], man["config"]["baselines"]["expert"]["band_iters"]
+    # What a folder written before scenes.seed and baselines.expert.mppi_narrow_clearance existed holds.
+    del man["config"]["scenes"]["seed"], man["config"]["baselines"]["expert"]["mppi_narrow_clearance"]
     man["identity_sha256"] = "0" * 64
     with open(man_path, "w") as f:
         json.dump(man, f)
@@ -396,9 +396,9 @@ def test_resume_of_a_folder_written_before_a_config_key_existed(tmp_path, monkey
     monkeypatch.setattr(run_module, "run_unit", lambda spec: calls.append(spec.key) or real(spec))
     E.evaluate(tiny_cfg(), out, progress=False)
     assert calls == []
-    assert "baselines.expert.band_iters, scenes.seed" in capsys.readouterr().err
+    assert "baselines.expert.mppi_narrow_clearance, scenes.seed" in capsys.readouterr().err
     with pytest.raises(E.EvalError, match="different run"):
-        E.evaluate(tiny_cfg("baselines.expert.band_iters=3"), out, progress=False)
+        E.evaluate(tiny_cfg("baselines.expert.mppi_narrow_clearance=0.35"), out, progress=False)
     man["config"]["no_longer_a_key"] = 1
     with open(man_path, "w") as f:
         json.dump(man, f)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from envs.config import ConfigError, load_config
+from envs.config import ConfigError, load_config, stored_config
 from envs.navigation import NavigationEnv
 from envs.vehicle.config import AirframeConfig
 from shield_nav.baselines import BaselineConfig, PlannerExpert, make_baseline
@@ -82,9 +82,9 @@ def _env(n=8, speed=7.0):
 
 def test_paths_descend_the_inflated_geodesic_field_and_keep_clearance():
     env = _env()
-    raw = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_window=1))).plan(env)["path"]
+    raw = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_window=1, band_iters=0))).plan(env)["path"]
     np.testing.assert_allclose(np.linalg.norm(np.diff(raw, axis=1), axis=2), 0.35, rtol=1e-9)  # steps of ds
-    ctrl = PlannerController(BaselineConfig())
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=0)))  # the moving average alone
     plan = ctrl.plan(env)
     path, speed = plan["path"], plan["speed"]
     ec = ctrl.ec
@@ -130,9 +130,9 @@ def test_band_straightens_paths_and_keeps_its_floor_of_clearance():
     """On real paths: first and last samples stay, no sample ends closer to an obstacle than min(band_clearance,
     its clearance before the band), the reported clearance is the env's ESDF, and the curvature falls."""
     env = _env()
-    plain = PlannerController(BaselineConfig())
+    plain = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=0)))
     before = plain.plan(env)
-    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=10)))
+    ctrl = PlannerController(BaselineConfig())  # the default: 10 iterations
     after = ctrl.plan(env)
     p0, p1 = before["path"], after["path"]
     np.testing.assert_allclose(p1[:, [0, -1]], p0[:, [0, -1]])
@@ -142,6 +142,16 @@ def test_band_straightens_paths_and_keeps_its_floor_of_clearance():
     d = env.field_stack.esdf(np.repeat(env.scene_id_buf, p1.shape[1]), p1.reshape(-1, 3)).reshape(p1.shape[:2])
     np.testing.assert_allclose(after["clear"], d)
     assert after["kappa"].mean() < 0.9 * before["kappa"].mean()
+
+
+def test_a_config_written_before_band_iters_flies_without_the_band():
+    """The band came on by default on 2026-12-03 (10 iterations); a stored config that lacks the key (written before
+    it existed) means no band, and a stored value is kept."""
+    assert ExpertConfig().band_iters == 10
+    stored = stored_config(ExpertConfig, {"tracker": "tangent", "commit_dist": 0.0})
+    assert stored["band_iters"] == 0
+    assert load_config(BaselineConfig, overrides={"expert": stored}).expert.band_iters == 0
+    assert stored_config(ExpertConfig, {"band_iters": 3})["band_iters"] == 3
 
 
 def test_resample_ahead_by_hand():
@@ -304,8 +314,8 @@ def test_smoothing_passes_repeat_the_moving_average_by_hand():
     """smooth_passes 2: each sample is the 7-sample average of the once-smoothed path (or keeps its once-smoothed
     value where the average would come closer than field_radius - smooth_slack to an obstacle)."""
     env = _env()
-    once = PlannerController(BaselineConfig()).plan(env)
-    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_passes=2)))
+    once = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=0))).plan(env)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_passes=2, band_iters=0)))
     twice = ctrl.plan(env)
     p1, p2 = once["path"], twice["path"]
     np.testing.assert_allclose(p2[:, 0], env.local_pos)
@@ -435,7 +445,7 @@ def test_flat_inflated_field_falls_back_to_the_envs_own_field():
     env = NavigationEnv(num_envs=4, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
                                        "curriculum.enabled": False})  # fmt: skip
     env.reset(seed=2)
-    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5)))
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, band_iters=0)))
     plan = ctrl.plan(env)
     assert ctrl.fallback.all()
     path = plan["path"]
@@ -444,11 +454,16 @@ def test_flat_inflated_field_falls_back_to_the_envs_own_field():
     assert np.all(phi[:, -1] < phi[:, 0] - 0.7 * ctrl.ec.horizon)
     # The narrow field weighs clearance below narrow_clearance: its paths keep more of it than the env's own field's
     # (narrow_clearance 0), and its Phi, a weighted length, is never below the distance.
-    plain = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, narrow_clearance=0.0)))
+    plain = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, narrow_clearance=0.0, band_iters=0)))
     plain_clear = plain.plan(env)["clear"].min(axis=1)
     assert plain.fallback.all()
     narrow_clear = plan["clear"].min(axis=1)
     assert np.all(narrow_clear > plain_clear) and np.all(narrow_clear >= 0.5)
+    # The elastic band (the default) may pull those paths in, but not below the vehicle radius + smooth_slack.
+    banded = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5)))
+    band_clear = banded.plan(env)["clear"].min(axis=1)
+    r_vehicle = env.cfg.vehicle.airframe.collision_radius
+    assert banded.fallback.all() and np.all(band_clear >= r_vehicle + banded.ec.smooth_slack - 1e-9)
     pts = env.local_pos + np.array([5.0, 0.0, 0.0])
     assert np.all(ctrl._phi(env, env.scene_id_buf, env.anchor_buf, pts, own=False)
                   >= env.anchor_fields.geodesic(env.scene_id_buf, env.anchor_buf, pts) - 1e-6)  # fmt: skip
@@ -576,7 +591,7 @@ def test_trace_kernel_equals_a_numpy_trace_with_and_without_the_narrow_field():
                                        "curriculum.enabled": False})  # fmt: skip
     scenes = np.array([0, 1, 0, 1, 0, 1])
     env.reset(seed=4, options={"scene_ids": scenes})
-    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, smooth_window=1)))
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, smooth_window=1, band_iters=0)))
     path, clear = ctrl.trace(env)
     ref_path, ref_clear, ref_fallback = _reference_trace(ctrl, env)
     np.testing.assert_array_equal(ref_fallback, scenes == 1)  # the maze's envs, and only they, fall back

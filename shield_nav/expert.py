@@ -50,7 +50,7 @@ import numba
 import numpy as np
 
 from envs.config import require
-from envs.fields.lookup import trilinear_point
+from envs.fields.lookup import _trilinear, trilinear_point
 from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
 from shield_nav.preview import PreviewGains, timed_reference
 from shield_nav.tracking import accel_to_command
@@ -389,6 +389,65 @@ def _trace_kernel(
                 ux, uy, uz = _unit3(ux + momentum * px, uy + momentum * py, uz + momentum * pz)
             px, py, pz = ux, uy, uz
             x, y, z = x + ds * ux, y + ds * uy, z + ds * uz
+
+
+@numba.njit(cache=True, fastmath=False, parallel=True)
+def _band_kernel(
+    p: np.ndarray,
+    d: np.ndarray,
+    ids: np.ndarray,
+    floor: np.ndarray,
+    iters: int,
+    step: float,
+    offset: np.ndarray,
+    shape: np.ndarray,
+    origin: np.ndarray,
+    res: np.ndarray,
+    esdf: np.ndarray,
+    grad: np.ndarray,
+    phi: np.ndarray,
+    yes: bool,
+    no: bool,
+) -> None:
+    """The elastic band of :meth:`PlannerController._band`, in place on paths ``p`` (N, K+1, 3) and clearances ``d``.
+
+    Each iteration: every inner sample moves ``step`` of the way to its neighbours' midpoint (Jacobi, from the
+    previous iterate), a sample whose ESDF is below its env's ``floor`` is pushed out along the unit ESDF gradient
+    by the shortfall, and a moved sample is kept where its ESDF is at least ``min(floor, d)``. The ESDF and its
+    gradient come from the lookup's own batched pass (:func:`envs.fields.lookup._trilinear`, as
+    :meth:`FieldStack.esdf` reads them), and the arithmetic is numpy's order of operations, so the result is the
+    numpy formulation's to the bit (tests/shield_nav/test_planner_expert.py). The lookup's want-flags come in as
+    arguments (``yes`` True, ``no`` False), not literals: with literal flags LLVM specialises the fastmath lookup
+    inlined here and its ESDF rounds 1 ulp away from :meth:`FieldStack.esdf`'s.
+    """
+    n, kp1 = d.shape
+    for i in numba.prange(n):  # envs are independent: numba's threads split them
+        sid = ids[i * kp1 : (i + 1) * kp1]
+        q = np.empty((kp1, 3))
+        dq = np.empty(kp1)
+        g = np.empty((kp1, 3))
+        none1 = np.empty(0)
+        none3 = np.empty((0, 3))
+        for _ in range(iters):
+            for c in range(3):
+                q[0, c] = p[i, 0, c]
+                q[kp1 - 1, c] = p[i, kp1 - 1, c]
+            for k in range(1, kp1 - 1):
+                for c in range(3):
+                    q[k, c] = p[i, k, c] + step * (0.5 * (p[i, k - 1, c] + p[i, k + 1, c]) - p[i, k, c])
+            _trilinear(sid, q, offset, shape, origin, res, esdf, grad, phi, yes, no, no, dq, none3, none1)
+            _trilinear(sid, q, offset, shape, origin, res, esdf, grad, phi, no, yes, no, none1, g, none1)
+            for k in range(1, kp1 - 1):
+                push = max(floor[i] - dq[k], 0.0)
+                gn = max(math.sqrt(g[k, 0] * g[k, 0] + g[k, 1] * g[k, 1] + g[k, 2] * g[k, 2]), 1e-9)
+                for c in range(3):
+                    q[k, c] = q[k, c] + push * (g[k, c] / gn)
+            _trilinear(sid, q, offset, shape, origin, res, esdf, grad, phi, yes, no, no, dq, none3, none1)
+            for k in range(kp1):
+                if dq[k] >= min(floor[i], d[i, k]) - 1e-9:
+                    d[i, k] = dq[k]
+                    for c in range(3):
+                        p[i, k, c] = q[k, c]
 
 
 TRACKERS = ("chord", "tangent", "preview", "mppi")
@@ -790,24 +849,16 @@ class PlannerController:
         return length + left
 
     def _band(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Elastic band on the paths (``band_iters``); the first and last samples stay put."""
+        """Elastic band on the paths (``band_iters``); the first and last samples stay put (``_band_kernel``)."""
         ec = self.ec
         n, kp1, _ = path.shape
-        ids = np.repeat(env.scene_id_buf, kp1)
+        ids = np.repeat(np.asarray(env.scene_id_buf, dtype=np.int64), kp1)
         r_vehicle = env.cfg.vehicle.airframe.collision_radius
-        floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.band_clearance)[:, None]
-        p, d = path.copy(), clear.copy()
-        for _ in range(ec.band_iters):
-            q = p.copy()
-            q[:, 1:-1] += ec.band_step * (0.5 * (p[:, :-2] + p[:, 2:]) - p[:, 1:-1])
-            dq = env.field_stack.esdf(ids, q.reshape(-1, 3)).reshape(n, kp1)
-            grad = env.field_stack.esdf_grad(ids, q.reshape(-1, 3)).reshape(n, kp1, 3)
-            push = np.maximum(floor - dq, 0.0)
-            push[:, [0, -1]] = 0.0
-            q += push[..., None] * _unit(grad)
-            dq = env.field_stack.esdf(ids, q.reshape(-1, 3)).reshape(n, kp1)
-            ok = dq >= np.minimum(floor, d) - 1e-9
-            p, d = np.where(ok[..., None], q, p), np.where(ok, dq, d)
+        floor = np.where(self.fallback, r_vehicle + ec.smooth_slack, ec.band_clearance).astype(np.float64)
+        fields = env.field_stack.kernel_fields(ids)
+        p = np.array(path, dtype=np.float64, order="C")
+        d = np.array(clear, dtype=np.float64, order="C")
+        _band_kernel(p, d, ids, floor, ec.band_iters, ec.band_step, *fields[1:], True, False)
         return p, d
 
     def _smooth(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -144,6 +144,46 @@ def test_band_straightens_paths_and_keeps_its_floor_of_clearance():
     assert after["kappa"].mean() < 0.9 * before["kappa"].mean()
 
 
+def _band_numpy(env, fallback, ec, path, clear):
+    """The elastic band in numpy over envs (the expert's formulation until 2026-12-03): the reference the kernel must
+    equal to the bit."""
+    n, kp1, _ = path.shape
+    ids = np.repeat(env.scene_id_buf, kp1)
+    floor = np.where(fallback, env.cfg.vehicle.airframe.collision_radius + ec.smooth_slack, ec.band_clearance)
+    floor = floor[:, None]
+    p, d = path.copy(), clear.copy()
+    for _ in range(ec.band_iters):
+        q = p.copy()
+        q[:, 1:-1] += ec.band_step * (0.5 * (p[:, :-2] + p[:, 2:]) - p[:, 1:-1])
+        dq = env.field_stack.esdf(ids, q.reshape(-1, 3)).reshape(n, kp1)
+        grad = env.field_stack.esdf_grad(ids, q.reshape(-1, 3)).reshape(n, kp1, 3)
+        push = np.maximum(floor - dq, 0.0)
+        push[:, [0, -1]] = 0.0
+        q += push[..., None] * (grad / np.maximum(np.linalg.norm(grad, axis=-1, keepdims=True), 1e-9))
+        dq = env.field_stack.esdf(ids, q.reshape(-1, 3)).reshape(n, kp1)
+        ok = dq >= np.minimum(floor, d) - 1e-9
+        p, d = np.where(ok[..., None], q, p), np.where(ok, dq, d)
+    return p, d
+
+
+@pytest.mark.parametrize(("band_clearance", "narrow"), [(0.5, False), (0.9, False), (0.5, True)])
+def test_band_kernel_equals_the_numpy_band_to_the_bit(band_clearance, narrow):
+    """The compiled band (``_band_kernel``) against the numpy formulation on the expert's raw paths through clutter,
+    with a floor that pushes many samples (0.9 m) and with every env on the narrow field's floor: identical arrays."""
+    env = _env()
+    ec = ExpertConfig(band_clearance=band_clearance)
+    ctrl = PlannerController(BaselineConfig(expert=ec))
+    raw = PlannerController(BaselineConfig(expert=ExpertConfig(smooth_window=1, band_iters=0))).plan(env)
+    ctrl.fallback = np.full(env.num_envs, narrow)
+    path, clear = raw["path"], raw["clear"]
+    p_ref, d_ref = _band_numpy(env, ctrl.fallback, ec, path, clear)
+    p, d = ctrl._band(env, path, clear)
+    assert not np.array_equal(p, path)  # the band moved samples
+    np.testing.assert_array_equal(p, p_ref)
+    np.testing.assert_array_equal(d, d_ref)
+    np.testing.assert_array_equal(raw["path"], path)  # inputs untouched
+
+
 def test_a_config_written_before_band_iters_flies_without_the_band():
     """The band came on by default on 2026-12-03 (10 iterations); a stored config that lacks the key (written before
     it existed) means no band, and a stored value is kept."""

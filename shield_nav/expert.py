@@ -1,7 +1,7 @@
 """The privileged planning expert: geodesic path, braking-aware speed profile, lag-anticipating tracker.
 
-Every control step, for every env at once (the path trace is one numba pass over envs and path samples, the
-rest numpy over envs):
+Every control step, for every env at once (the path trace and the elastic band are numba passes over envs and path
+samples, the rest numpy over envs):
 
 1. **Path.** From the vehicle's position, trace ``K = horizon / ds`` steps of length ``ds`` down the geodesic field
    of the episode's goal anchor, built with obstacles inflated by ``field_radius`` (so the shortest paths keep that

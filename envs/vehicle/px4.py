@@ -4,24 +4,19 @@ The structure follows PX4's ``mc_att_control`` (reduced-attitude quaternion cont
 pitch over yaw), ``mc_rate_control`` (PID on body rates with anti-windup and the derivative on the measured
 angular acceleration) and ``control_allocator`` (effectiveness-matrix pseudo-inverse with sequential
 desaturation). It is our own implementation of those published algorithms, vectorised over N vehicles with
-numpy: no per-vehicle Python loop. Shapes are stated as (N, ...). Body frame is FLU, quaternions (w, x, y, z).
+numpy (the attitude loop's arithmetic in two numba kernels, bit for bit its numpy formulation): no per-vehicle Python
+loop. Shapes are stated as (N, ...). Body frame is FLU, quaternions (w, x, y, z).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from envs.vehicle.config import ControllerConfig, VehicleConfig
-from envs.vehicle.rotations import (
-    attitude_from_thrust_axis,
-    euler_zyx_to_rot,
-    quat_conj,
-    quat_mul,
-    quat_to_rot,
-    rot_to_quat,
-)
+from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_quat
 
 # ---------------------------------------------------------------------------------------------------------------
 # Geometry of the X quadrotor (PX4 motor numbering), FLU body frame.
@@ -123,6 +118,82 @@ class Allocator:
         return u, unalloc > 1e-3, unalloc < -1e-3
 
 
+@numba.njit(cache=True, fastmath=False)
+def _reduced_attitude_kernel(q: np.ndarray, q_sp: np.ndarray, q_red: np.ndarray, q_mix: np.ndarray) -> None:
+    """Steps 1-2 of :meth:`AttitudeRateController.attitude` before its arccos / arcsin: ``q_red`` and ``q_mix``.
+
+    Every product, sum and square root in the numpy formulation's order (``np.sum`` and ``np.linalg.norm`` reduce
+    left to right over 3 and 4 items, ``np.cross`` as ``a1 b2 - a2 b1``, ...), no fused multiply-add, so the result is
+    the numpy formulation's to the bit (tests/envs/test_vehicle.py).
+    """
+    for i in range(q.shape[0]):
+        w, x, y, z = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        ws, xs, ys, zs = q_sp[i, 0], q_sp[i, 1], q_sp[i, 2], q_sp[i, 3]
+        # Thrust axes: the third columns of the rotation matrices (quat_to_rot's expressions).
+        a0, a1, a2 = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)
+        b0, b1, b2 = 2.0 * (xs * zs + ws * ys), 2.0 * (ys * zs - ws * xs), 1.0 - 2.0 * (xs * xs + ys * ys)
+        r0 = 1.0 + (a0 * b0 + a1 * b1 + a2 * b2)
+        r1 = a1 * b2 - a2 * b1
+        r2 = a2 * b0 - a0 * b2
+        r3 = a0 * b1 - a1 * b0
+        n = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+        if n < 1e-6:  # antiparallel: the full setpoint
+            rw, rx, ry, rz = ws, xs, ys, zs
+        else:
+            d = max(n, 1e-12)
+            r0, r1, r2, r3 = r0 / d, r1 / d, r2 / d, r3 / d
+            rw = r0 * w - r1 * x - r2 * y - r3 * z
+            rx = r0 * x + r1 * w + r2 * z - r3 * y
+            ry = r0 * y - r1 * z + r2 * w + r3 * x
+            rz = r0 * z + r1 * y - r2 * x + r3 * w
+        q_red[i, 0], q_red[i, 1], q_red[i, 2], q_red[i, 3] = rw, rx, ry, rz
+        cw, cx, cy, cz = rw, -rx, -ry, -rz  # conjugate
+        mw = cw * ws - cx * xs - cy * ys - cz * zs
+        mx = cw * xs + cx * ws + cy * zs - cz * ys
+        my = cw * ys - cx * zs + cy * ws + cz * xs
+        mz = cw * zs + cx * ys - cy * xs + cz * ws
+        if mw < 0.0:
+            mw, mx, my, mz = -mw, -mx, -my, -mz
+        q_mix[i, 0], q_mix[i, 1], q_mix[i, 2], q_mix[i, 3] = mw, mx, my, mz
+
+
+@numba.njit(cache=True, fastmath=False)
+def _attitude_error_kernel(
+    q: np.ndarray,
+    q_red: np.ndarray,
+    cos_w: np.ndarray,
+    sin_z: np.ndarray,
+    gain: np.ndarray,
+    limit: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """Step 3 of :meth:`AttitudeRateController.attitude`: rate setpoints from ``q_red`` and the yaw quaternion.
+
+    The yaw quaternion is ``(cos_w, 0, 0, sin_z)``; the numpy formulation's order, its zeros multiplied as it did.
+    """
+    for i in range(q.shape[0]):
+        w1, x1, y1, z1 = q_red[i, 0], q_red[i, 1], q_red[i, 2], q_red[i, 3]
+        w2, x2, y2, z2 = cos_w[i], 0.0, 0.0, sin_z[i]
+        dw = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+        dx = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+        dy = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+        dz = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+        cw, cx, cy, cz = q[i, 0], -q[i, 1], -q[i, 2], -q[i, 3]
+        ew = cw * dw - cx * dx - cy * dy - cz * dz
+        ex = cw * dx + cx * dw + cy * dz - cz * dy
+        ey = cw * dy - cx * dz + cy * dw + cz * dx
+        ez = cw * dz + cx * dy - cy * dx + cz * dw
+        sign = 2.0 * (-1.0 if ew < 0.0 else 1.0)
+        e = (sign * ex, sign * ey, sign * ez)
+        for k in range(3):
+            v = gain[i, k] * e[k]
+            if v < -limit[k]:  # np.clip's order: the lower bound, then the upper; NaN stays NaN
+                v = -limit[k]
+            if v > limit[k]:
+                v = limit[k]
+            out[i, k] = v
+
+
 class AttitudeRateController:
     """PX4-style attitude P loop and rate PID, batched over N vehicles with per-vehicle gains.
 
@@ -171,28 +242,18 @@ class AttitudeRateController:
            q_mix = q_red^-1 q_sp, q_d = q_red (cos(w acos q_mix.w), 0, 0, sin(w asin q_mix.z)).
         3. Error q_e = q^-1 q_d, e = 2 sign(q_e.w) q_e.xyz (sin(angle/2)-scaled axis), rate_sp = K_p * e, clipped.
         """
-        r = quat_to_rot(quat_wb)
-        r_sp = quat_to_rot(quat_sp)
-        e_z = r[:, :, 2]
-        e_z_d = r_sp[:, :, 2]
-        # Shortest rotation from e_z to e_z_d: q = normalize(1 + e_z . e_z_d, e_z x e_z_d).
-        q_rot = np.concatenate((1.0 + np.sum(e_z * e_z_d, axis=1, keepdims=True), np.cross(e_z, e_z_d)), axis=1)
-        n = np.linalg.norm(q_rot, axis=1, keepdims=True)
-        antiparallel = n[:, 0] < 1e-6
-        q_rot = q_rot / np.maximum(n, 1e-12)
-        q_red = quat_mul(q_rot, quat_wb)
-        # In the (measure-zero) antiparallel case PX4 takes the full setpoint.
-        q_red = np.where(antiparallel[:, None], quat_sp, q_red)
-        q_mix = quat_mul(quat_conj(q_red), quat_sp)
-        q_mix = np.where(q_mix[:, :1] < 0.0, -q_mix, q_mix)
+        q = np.ascontiguousarray(quat_wb, dtype=np.float64)
+        q_sp = np.ascontiguousarray(quat_sp, dtype=np.float64)
+        q_red = np.empty_like(q)
+        q_mix = np.empty_like(q)
+        _reduced_attitude_kernel(q, q_sp, q_red, q_mix)
         w = self.yaw_weight
         half_w = w * np.arccos(np.clip(q_mix[:, 0], -1.0, 1.0))
         half_z = w * np.arcsin(np.clip(q_mix[:, 3], -1.0, 1.0))
-        q_yaw = np.stack((np.cos(half_w), np.zeros_like(half_w), np.zeros_like(half_w), np.sin(half_z)), axis=1)
-        q_d = quat_mul(q_red, q_yaw)
-        q_e = quat_mul(quat_conj(quat_wb), q_d)
-        e = 2.0 * np.where(q_e[:, :1] < 0.0, -1.0, 1.0) * q_e[:, 1:]
-        return np.clip(self.attitude_p * e, -self.rate_limit, self.rate_limit)
+        out = np.empty((q.shape[0], 3))
+        _attitude_error_kernel(q, q_red, np.cos(half_w), np.sin(half_z), np.ascontiguousarray(self.attitude_p),
+                               np.ascontiguousarray(self.rate_limit, dtype=np.float64), out)  # fmt: skip
+        return out
 
     def rate(self, rate_sp: np.ndarray, rate_b: np.ndarray) -> np.ndarray:
         """Rate PID (PX4 ``RateControl::update``). Returns normalised torques (N, 3) in [-1, 1].

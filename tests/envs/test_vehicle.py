@@ -8,9 +8,9 @@ import pytest
 
 from envs.config import ConfigError, load_config
 from envs.vehicle.config import VehicleConfig
-from envs.vehicle.px4 import Allocator, attitude_setpoint, effectiveness
+from envs.vehicle.px4 import Allocator, AttitudeRateController, attitude_setpoint, effectiveness
 from envs.vehicle.response import attitude_step, hover_hold, tilt_acceleration
-from envs.vehicle.rotations import euler_zyx_to_rot, quat_mul, quat_to_rot, rot_to_euler_zyx, rot_to_quat
+from envs.vehicle.rotations import euler_zyx_to_rot, quat_conj, quat_mul, quat_to_rot, rot_to_euler_zyx, rot_to_quat
 from envs.vehicle.vehicles import Vehicles
 
 G = 9.81
@@ -72,6 +72,56 @@ def test_quaternion_kernels_equal_the_numpy_expressions_to_the_bit():
     # By hand: i * j = k, and the identity's matrix.
     np.testing.assert_array_equal(quat_mul(np.array([[0.0, 1, 0, 0]]), np.array([[0.0, 0, 1, 0]])), [[0, 0, 0, 1]])
     np.testing.assert_array_equal(quat_to_rot(np.array([[1.0, 0, 0, 0]])), np.eye(3)[None])
+
+
+def _attitude_numpy(quat_wb, quat_sp, gain, limit, yaw_weight):
+    """The reduced-attitude P loop as numpy expressions over (N, ...) arrays (the controller's formulation until
+    2026-12-03): the reference its kernels must equal to the bit."""
+    e_z, e_z_d = _quat_to_rot_numpy(quat_wb)[:, :, 2], _quat_to_rot_numpy(quat_sp)[:, :, 2]
+    q_rot = np.concatenate((1.0 + np.sum(e_z * e_z_d, axis=1, keepdims=True), np.cross(e_z, e_z_d)), axis=1)
+    n = np.linalg.norm(q_rot, axis=1, keepdims=True)
+    q_red = _quat_mul_numpy(q_rot / np.maximum(n, 1e-12), quat_wb)
+    q_red = np.where(n < 1e-6, quat_sp, q_red)
+    q_mix = _quat_mul_numpy(quat_conj(q_red), quat_sp)
+    q_mix = np.where(q_mix[:, :1] < 0.0, -q_mix, q_mix)
+    half_w = yaw_weight * np.arccos(np.clip(q_mix[:, 0], -1.0, 1.0))
+    half_z = yaw_weight * np.arcsin(np.clip(q_mix[:, 3], -1.0, 1.0))
+    zero = np.zeros_like(half_w)
+    q_d = _quat_mul_numpy(q_red, np.stack((np.cos(half_w), zero, zero, np.sin(half_z)), axis=1))
+    q_e = _quat_mul_numpy(quat_conj(quat_wb), q_d)
+    e = 2.0 * np.where(q_e[:, :1] < 0.0, -1.0, 1.0) * q_e[:, 1:]
+    return np.clip(gain * e, -limit, limit)
+
+
+def test_attitude_kernels_equal_the_numpy_attitude_loop_to_the_bit():
+    """The attitude P loop (two numba kernels round numpy's arccos / arcsin / cos / sin) against its numpy
+    formulation: random attitudes and setpoints, setpoints near the current one, antiparallel thrust axes (the full
+    setpoint), rate-limited errors and per-vehicle gains; then hand values: no error gives zero rates, and a small
+    roll error e gives K_p * 2 sin(e / 2) about x."""
+    rng = np.random.default_rng(11)
+    n = 300
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q_sp = rng.normal(size=(n, 4))
+    q_sp /= np.linalg.norm(q_sp, axis=1, keepdims=True)
+    q_sp[:100] = q[:100] + 0.05 * rng.normal(size=(100, 4))  # near the current attitude
+    q_sp[:100] /= np.linalg.norm(q_sp[:100], axis=1, keepdims=True)
+    q_sp[100:110] = _quat_mul_numpy(q[100:110], np.tile([0.0, 1.0, 0.0, 0.0], (10, 1)))  # flipped thrust axis
+    cfg = VehicleConfig().controller
+    ctrl = AttitudeRateController(n, cfg, 0.002)
+    ctrl.attitude_p = ctrl.attitude_p * rng.uniform(0.5, 1.5, size=(n, 3))
+    ref = _attitude_numpy(q, q_sp, ctrl.attitude_p, ctrl.rate_limit, ctrl.yaw_weight)
+    assert (np.abs(ref) == ctrl.rate_limit).any()  # some rates are clipped
+    np.testing.assert_array_equal(ctrl.attitude(q, q_sp), ref)
+    np.testing.assert_array_equal(ctrl.attitude(q[:, ::-1][:, ::-1], q_sp), ref)  # a strided view
+    one = AttitudeRateController(2, cfg, 0.002)
+    level = np.array([[1.0, 0.0, 0.0, 0.0]] * 2)
+    np.testing.assert_array_equal(one.attitude(level, level), np.zeros((2, 3)))
+    err = 0.01
+    rolled = np.array([[math.cos(err / 2), math.sin(err / 2), 0.0, 0.0]] * 2)
+    expect = one.attitude_p[0, 0] * 2.0 * math.sin(err / 2)
+    np.testing.assert_allclose(one.attitude(level, rolled)[:, 0], expect, rtol=1e-9)
+    np.testing.assert_allclose(one.attitude(level, rolled)[:, 1:], 0.0, atol=1e-15)
 
 
 def test_euler_zyx_round_trip_and_convention():

@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 from envs.vehicle.config import ControllerConfig, VehicleConfig
-from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_quat
+from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, quat_mul_scalars, rot_to_quat
 
 # ---------------------------------------------------------------------------------------------------------------
 # Geometry of the X quadrotor (PX4 motor numbering), FLU body frame.
@@ -142,16 +142,10 @@ def _reduced_attitude_kernel(q: np.ndarray, q_sp: np.ndarray, q_red: np.ndarray,
         else:
             d = max(n, 1e-12)
             r0, r1, r2, r3 = r0 / d, r1 / d, r2 / d, r3 / d
-            rw = r0 * w - r1 * x - r2 * y - r3 * z
-            rx = r0 * x + r1 * w + r2 * z - r3 * y
-            ry = r0 * y - r1 * z + r2 * w + r3 * x
-            rz = r0 * z + r1 * y - r2 * x + r3 * w
+            rw, rx, ry, rz = quat_mul_scalars(r0, r1, r2, r3, w, x, y, z)
         q_red[i, 0], q_red[i, 1], q_red[i, 2], q_red[i, 3] = rw, rx, ry, rz
         cw, cx, cy, cz = rw, -rx, -ry, -rz  # conjugate
-        mw = cw * ws - cx * xs - cy * ys - cz * zs
-        mx = cw * xs + cx * ws + cy * zs - cz * ys
-        my = cw * ys - cx * zs + cy * ws + cz * xs
-        mz = cw * zs + cx * ys - cy * xs + cz * ws
+        mw, mx, my, mz = quat_mul_scalars(cw, cx, cy, cz, ws, xs, ys, zs)
         if mw < 0.0:
             mw, mx, my, mz = -mw, -mx, -my, -mz
         q_mix[i, 0], q_mix[i, 1], q_mix[i, 2], q_mix[i, 3] = mw, mx, my, mz
@@ -172,17 +166,10 @@ def _attitude_error_kernel(
     The yaw quaternion is ``(cos_w, 0, 0, sin_z)``; the numpy formulation's order, its zeros multiplied as it did.
     """
     for i in range(q.shape[0]):
-        w1, x1, y1, z1 = q_red[i, 0], q_red[i, 1], q_red[i, 2], q_red[i, 3]
-        w2, x2, y2, z2 = cos_w[i], 0.0, 0.0, sin_z[i]
-        dw = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
-        dx = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
-        dy = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
-        dz = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
-        cw, cx, cy, cz = q[i, 0], -q[i, 1], -q[i, 2], -q[i, 3]
-        ew = cw * dw - cx * dx - cy * dy - cz * dz
-        ex = cw * dx + cx * dw + cy * dz - cz * dy
-        ey = cw * dy - cx * dz + cy * dw + cz * dx
-        ez = cw * dz + cx * dy - cy * dx + cz * dw
+        dw, dx, dy, dz = quat_mul_scalars(
+            q_red[i, 0], q_red[i, 1], q_red[i, 2], q_red[i, 3], cos_w[i], 0.0, 0.0, sin_z[i]
+        )
+        ew, ex, ey, ez = quat_mul_scalars(q[i, 0], -q[i, 1], -q[i, 2], -q[i, 3], dw, dx, dy, dz)
         sign = 2.0 * (-1.0 if ew < 0.0 else 1.0)
         e = (sign * ex, sign * ey, sign * ez)
         for k in range(3):

@@ -13,15 +13,29 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True, fastmath=False, inline="always")
+def quat_mul_scalars(
+    w1: float, x1: float, y1: float, z1: float, w2: float, x2: float, y2: float, z2: float
+) -> tuple[float, float, float, float]:
+    """Hamilton product (w1, x1, y1, z1) * (w2, x2, y2, z2) of scalars, for numba kernels (inlined into them).
+
+    The products and sums of :func:`quat_mul`'s numpy expressions, in their order: the kernels that call it equal
+    the numpy formulation to the bit.
+    """
+    return (
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    )
+
+
 @numba.njit(cache=True, fastmath=False)
 def _quat_mul_kernel(q: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
     for i in range(q.shape[0]):
-        w1, x1, y1, z1 = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
-        w2, x2, y2, z2 = p[i, 0], p[i, 1], p[i, 2], p[i, 3]
-        out[i, 0] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
-        out[i, 1] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
-        out[i, 2] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
-        out[i, 3] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = quat_mul_scalars(
+            q[i, 0], q[i, 1], q[i, 2], q[i, 3], p[i, 0], p[i, 1], p[i, 2], p[i, 3]
+        )
 
 
 @numba.njit(cache=True, fastmath=False)

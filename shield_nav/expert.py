@@ -50,7 +50,7 @@ import numba
 import numpy as np
 
 from envs.config import require
-from envs.fields.lookup import _trilinear, trilinear_point
+from envs.fields.lookup import trilinear_batch, trilinear_point
 from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
 from shield_nav.preview import PreviewGains, timed_reference
 from shield_nav.tracking import accel_to_command
@@ -414,7 +414,7 @@ def _band_kernel(
     Each iteration: every inner sample moves ``step`` of the way to its neighbours' midpoint (Jacobi, from the
     previous iterate), a sample whose ESDF is below its env's ``floor`` is pushed out along the unit ESDF gradient
     by the shortfall, and a moved sample is kept where its ESDF is at least ``min(floor, d)``. The ESDF and its
-    gradient come from the lookup's own batched pass (:func:`envs.fields.lookup._trilinear`, as
+    gradient come from the lookup's own batched pass (:func:`envs.fields.lookup.trilinear_batch`, as
     :meth:`FieldStack.esdf` reads them), and the arithmetic is numpy's order of operations, so the result is the
     numpy formulation's to the bit (tests/shield_nav/test_planner_expert.py). The lookup's want-flags come in as
     arguments (``yes`` True, ``no`` False), not literals: with literal flags LLVM specialises the fastmath lookup
@@ -435,14 +435,14 @@ def _band_kernel(
             for k in range(1, kp1 - 1):
                 for c in range(3):
                     q[k, c] = p[i, k, c] + step * (0.5 * (p[i, k - 1, c] + p[i, k + 1, c]) - p[i, k, c])
-            _trilinear(sid, q, offset, shape, origin, res, esdf, grad, phi, yes, no, no, dq, none3, none1)
-            _trilinear(sid, q, offset, shape, origin, res, esdf, grad, phi, no, yes, no, none1, g, none1)
+            trilinear_batch(sid, q, offset, shape, origin, res, esdf, grad, phi, yes, no, no, dq, none3, none1)
+            trilinear_batch(sid, q, offset, shape, origin, res, esdf, grad, phi, no, yes, no, none1, g, none1)
             for k in range(1, kp1 - 1):
                 push = max(floor[i] - dq[k], 0.0)
                 gn = max(math.sqrt(g[k, 0] * g[k, 0] + g[k, 1] * g[k, 1] + g[k, 2] * g[k, 2]), 1e-9)
                 for c in range(3):
                     q[k, c] = q[k, c] + push * (g[k, c] / gn)
-            _trilinear(sid, q, offset, shape, origin, res, esdf, grad, phi, yes, no, no, dq, none3, none1)
+            trilinear_batch(sid, q, offset, shape, origin, res, esdf, grad, phi, yes, no, no, dq, none3, none1)
             for k in range(kp1):
                 if dq[k] >= min(floor[i], d[i, k]) - 1e-9:
                     d[i, k] = dq[k]

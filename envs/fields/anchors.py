@@ -27,7 +27,7 @@ import numpy as np
 
 from envs.fields.build import DEFAULT_STENCIL, SceneFields, cache_key, default_cache_dir, region_mask, report
 from envs.fields.geodesic import geodesic_field, nearest_traversable
-from envs.fields.lookup import FieldStack, _trilinear
+from envs.fields.lookup import FieldStack, trilinear_batch
 
 
 def anchor_points(scene: object, count: int, edge_margin: float = 1.5) -> np.ndarray:
@@ -252,7 +252,7 @@ class GoalAnchorFields:
             self._ensure_fields(ids)
         pts = np.ascontiguousarray(points, dtype=np.float64)
         out = np.empty(len(ids))
-        _trilinear(
+        trilinear_batch(
             ids, pts, self._offset, self._shape, self._origin, self._res, self._empty1, self._empty3, self._phi,
             False, False, True, self._empty1, self._empty3, out,
         )  # fmt: skip

@@ -91,7 +91,7 @@ def trilinear_point(
 
 
 @numba.njit(cache=True, fastmath=True)
-def _trilinear(
+def trilinear_batch(
     ids: np.ndarray,
     pts: np.ndarray,
     offset: np.ndarray,
@@ -108,6 +108,13 @@ def _trilinear(
     out_grad: np.ndarray,
     out_phi: np.ndarray,
 ) -> None:
+    """The lookup of :class:`FieldStack` for compiled callers: point ``n`` of scene ``ids[n]`` into ``out_*[n]``.
+
+    The flat field arrays are :class:`FieldStack`'s; only the ``want_*`` outputs are written (the others may be
+    empty arrays). Kernels that must agree with the stack's lookups to the bit call this function with the flags as
+    runtime arguments: literal flags let LLVM specialise the inlined fastmath point lookup, which can round
+    differently (docs/expert.md, the band kernel).
+    """
     for n in range(ids.shape[0]):
         e, g0, g1, g2, p = trilinear_point(
             ids[n], pts[n, 0], pts[n, 1], pts[n, 2], offset, shape, origin, res, esdf, grad, phi,
@@ -240,7 +247,7 @@ class FieldStack:
         out_e = np.empty(n) if esdf else self._empty1
         out_g = np.empty((n, 3)) if grad else self._empty3
         out_p = np.empty(n) if geodesic else self._empty1
-        _trilinear(
+        trilinear_batch(
             ids, pts, self.offset, self.shape, self.origin, self.res, self._esdf, self._grad, self._phi,
             esdf, grad, geodesic, out_e, out_g, out_p,
         )  # fmt: skip

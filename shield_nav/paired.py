@@ -28,6 +28,11 @@ way, which the plain comparison would credit (docs/evaluation.md). A trial recor
 Without the flag the report still counts each side's successes over the tops (``a_over``, ``b_over``) and warns when
 the flights over the tops could account for B's lead (or A's), so such a gain is not credited unnoticed.
 
+``--by-scene`` adds where the two rows differ: one line per scene with each speed's trials as letters in trial order,
+A's then B's (``s`` success, ``S`` success over the obstacles' tops, ``c`` collision, ``t`` time-out, ``o`` out of
+bounds), and B's discordant pairs won / lost in that scene (counted as ``--below-tops`` says); ``--json`` then holds
+the same under ``by_scene``.
+
 Several pairs (``A1 B1 A2 B2 ...``) are replicates of one comparison, e.g. the same two training recipes run with
 two training seeds: each pair is reported on its own, then **pooled**, the discordant pairs of all replicates summed
 into one exact McNemar test. Under "A and B are equally good" every discordant pair is still a fair coin whichever
@@ -55,6 +60,7 @@ from shield_nav.evaluation.outcomes import OUTCOMES_FILE, read_outcomes
 from shield_nav.provenance import format_differences, manifest_record, version_differences
 
 __all__ = [
+    "by_scene",
     "compare",
     "compare_pooled",
     "mcnemar_exact",
@@ -204,6 +210,50 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
     }  # fmt: skip
 
 
+OUTCOME_LETTERS = {"success": "s", "collision": "c", "timeout": "t", "out_of_bounds": "o"}
+"""One letter per trial outcome in :func:`by_scene` (a success over the obstacles' tops is ``S``)."""
+
+
+def _letter(trial: dict) -> str:
+    """``trial``'s outcome as one letter (:data:`OUTCOME_LETTERS`; ``S`` for a success over the tops)."""
+    out = trial["outcome"]
+    if out not in OUTCOME_LETTERS:
+        raise ValueError(f"unknown trial outcome {out!r}; expected one of {sorted(OUTCOME_LETTERS)}")
+    if out == "success" and trial.get("metrics", {}).get("flew_over"):
+        return "S"
+    return OUTCOME_LETTERS[out]
+
+
+def by_scene(a: str, b: str, speeds: list[float] | None = None, below_tops: bool = False) -> list[dict]:
+    """Per scene of the trials both rows flew: each speed's outcome letters (A's, B's) and B's won / lost pairs.
+
+    Returns ``[{"family", "scene", "speeds": {speed: [a_letters, b_letters]}, "b_won", "b_lost"}, ...]`` sorted by
+    family and scene; letters in trial order (:data:`OUTCOME_LETTERS`), won / lost as :func:`compare` counts them.
+    """
+    rows: dict[tuple, dict] = {}
+    for key, x, y in paired_trials(a, b, speeds):
+        fam, scene, speed, _trial = key
+        r = rows.setdefault((fam, scene), {"family": fam, "scene": scene, "speeds": {}, "b_won": 0, "b_lost": 0})
+        cell = r["speeds"].setdefault(speed, ["", ""])
+        cell[0] += _letter(x)
+        cell[1] += _letter(y)
+        sa, sb = _succeeded(x, below_tops, key), _succeeded(y, below_tops, key)
+        r["b_won"] += sb and not sa
+        r["b_lost"] += sa and not sb
+    return [rows[k] for k in sorted(rows)]
+
+
+def format_by_scene(table: list[dict]) -> str:
+    """Markdown table of :func:`by_scene`: one line per scene, ``A / B`` letters per speed, B's won / lost."""
+    speeds = sorted({v for r in table for v in r["speeds"]})
+    lines = ["| scene | " + " | ".join(f"{v:g} m/s A / B" for v in speeds) + " | B won / lost |",
+             "|---|" + "---|" * len(speeds) + "---:|"]  # fmt: skip
+    for r in table:
+        cells = [" / ".join(r["speeds"][v]) if v in r["speeds"] else "-" for v in speeds]
+        lines.append(f"| {r['family']} {r['scene']} | " + " | ".join(cells) + f" | {r['b_won']} / {r['b_lost']} |")
+    return "\n".join(lines)
+
+
 def compare_pooled(specs: list[tuple[str, str]], speeds: list[float] | None = None, below_tops: bool = False) -> dict:
     """:func:`compare` of every ``(a, b)`` pair, and the pooled counts and exact McNemar test over all of them."""
     if not specs:
@@ -322,6 +372,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all in common)")
     ap.add_argument("--below-tops", action="store_true",
                     help="count a success only where the flight stayed below the obstacles' tops")  # fmt: skip
+    ap.add_argument("--by-scene", action="store_true",
+                    help="also list each scene's outcomes per speed as letters (s S c t o), A's and B's")  # fmt: skip
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     args = ap.parse_args(argv)
     try:
@@ -336,14 +388,22 @@ def main(argv: list[str] | None = None) -> int:
             res = compare(*specs[0], speeds, args.below_tops)
         else:
             res = compare_pooled(specs, speeds, args.below_tops)
+        scenes = [by_scene(a, b, speeds, args.below_tops) for a, b in specs] if args.by_scene else []
     except (ValueError, FileNotFoundError) as err:
         ap.error(str(err))
+    if scenes:  # JSON keys are strings: the speeds as eval.py's unit names write them
+        json_scenes = [[{**r, "speeds": {f"{v:g}": c for v, c in r["speeds"].items()}} for r in t] for t in scenes]
+        for r, t in zip(res["pairs"] if len(specs) > 1 else [res], json_scenes, strict=True):
+            r["by_scene"] = t
     if args.json:
         print(json.dumps(res))
     elif len(specs) == 1:
         print(format_report(res))
+        if scenes:
+            print("\n" + format_by_scene(scenes[0]))
     else:
-        print("\n\n".join(format_report(r) for r in res["pairs"]))
+        print("\n\n".join(format_report(r) + ("\n\n" + format_by_scene(t) if scenes else "")
+                           for r, t in zip(res["pairs"], scenes or [None] * len(specs), strict=True)))  # fmt: skip
         p = res["pooled"]
         print(f"\npooled over {p['replicates']} replicates, {p['n']} paired trials: "
               f"A {100 * p['a_success']:.1f} %, B {100 * p['b_success']:.1f} %; discordant: A only {p['a_only']}, "

@@ -6,6 +6,7 @@ import math
 import pytest
 
 from shield_nav.paired import (
+    by_scene,
     compare,
     compare_pooled,
     main,
@@ -279,3 +280,32 @@ def test_a_kept_outcomes_file_pairs_like_the_unit_files_it_was_written_from(tmp_
         compare(f"{kept}:nosuchrow", f"{tmp_path / 'b'}:new")
     with pytest.raises(FileNotFoundError, match=OUTCOMES_FILE):
         compare(f"{tmp_path / 'nothing'}:old", f"{tmp_path / 'b'}:new")
+
+
+def test_by_scene_lists_each_scenes_outcome_letters_and_bs_won_and_lost(tmp_path, capsys):
+    s, c, t, o = "success", "collision", "timeout", "out_of_bounds"
+    _write(tmp_path / "a", "old", [s, s, c, t], over=[0, 1, 0, 0])
+    _write(tmp_path / "a", "old", [o, s], scene=3, speed=5.0, over=[0, 0])
+    _write(tmp_path / "b", "new", [s, s, s, s], over=[1, 0, 0, 0])
+    _write(tmp_path / "b", "new", [s, s], scene=3, speed=5.0, over=[0, 0])
+    a, b = f"{tmp_path / 'a'}:old", f"{tmp_path / 'b'}:new"
+    # Scene 0 at 3 m/s: pairs (s,S) (S,s) (c,s) (t,s): B wins 2 (trials 2, 3); scene 3 at 5 m/s: (o,s) (s,s): B wins
+    # 1. Below the tops B's trial 0 and A's trial 1 are failures: B loses trial 0 and wins trial 1 too.
+    assert by_scene(a, b) == [
+        {"family": "ablation", "scene": 0, "speeds": {3.0: ["sSct", "Ssss"]}, "b_won": 2, "b_lost": 0},
+        {"family": "ablation", "scene": 3, "speeds": {5.0: ["os", "ss"]}, "b_won": 1, "b_lost": 0},
+    ]
+    low = by_scene(a, b, below_tops=True)
+    assert (low[0]["b_won"], low[0]["b_lost"]) == (3, 1) and low[0]["speeds"] == {3.0: ["sSct", "Ssss"]}
+    main([a, b, "--by-scene"])
+    out = capsys.readouterr().out
+    assert "| scene | 3 m/s A / B | 5 m/s A / B | B won / lost |" in out
+    assert "| ablation 0 | sSct / Ssss | - | 2 / 0 |" in out and "| ablation 3 | - | os / ss | 1 / 0 |" in out
+    main([a, b, "--by-scene", "--json"])
+    res = json.loads(capsys.readouterr().out.strip())
+    assert res["by_scene"][1]["speeds"] == {"5": ["os", "ss"]} and res["b_only"] == 3
+    main([a, b, a, b, "--by-scene", "--json"])  # replicates: each pair carries its own table
+    assert [len(p["by_scene"]) for p in json.loads(capsys.readouterr().out.strip())["pairs"]] == [2, 2]
+    _write(tmp_path / "c", "odd", ["crashed", s, c, t])
+    with pytest.raises(ValueError, match="unknown trial outcome 'crashed'"):
+        by_scene(f"{tmp_path / 'c'}:odd", b)

@@ -629,6 +629,7 @@ class PlannerController:
         self.ec: ExpertConfig = cfg.expert
         self._own: tuple | None = None
         self._caps: tuple | None = None  # (env, per-scene height caps) of mppi_below_tops
+        self._bounds: tuple | None = None  # (env, per-scene box corners) of the flatness test
         self.last: dict[str, np.ndarray] = {}
         self.fallback = np.zeros(0, dtype=bool)
         """(N,) bool of the last trace: envs that descended the narrow field (the inflated one was flat)."""
@@ -718,9 +719,13 @@ class PlannerController:
             bad = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
             raise ValueError(f"PlannerController.trace: env {bad} has a non-finite position {x[bad].tolist()}")
         # Where the inflation closes every way to the goal, the inflated Phi is flat (capped at its unreachable
-        # value): those envs descend the narrow field instead (the vehicle radius, clearance-weighted).
+        # value): those envs descend the narrow field instead (the vehicle radius, clearance-weighted). The test's
+        # points are kept inside the scene's box: outside it the lookup adds the distance out to Phi, a slope that
+        # is not the field's and that, at the box's side, hid a plateau (a stall in a box maze, session 75).
         offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
-        pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1).reshape(-1, 3)
+        pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1)
+        lo, hi = self._box(env)
+        pts = np.clip(pts, lo[ids][:, None, :], hi[ids][:, None, :]).reshape(-1, 3)
         phi0 = self._phi(env, np.repeat(ids, 7), np.repeat(anchor, 7), pts).reshape(n, 7)
         slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
         fallback = slope < ec.flat_slope
@@ -991,6 +996,14 @@ class PlannerController:
                       costs, self._z_cap(env))  # fmt: skip
         m.plan = path_integral_mean(u, costs, ec.mppi_temperature)
         return m.plan[:, 0]
+
+    def _box(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Per scene of ``env``, the lower and upper corners (S, 3) of its flight volume, in the scene's own frame."""
+        if self._bounds is None or self._bounds[0] is not env:
+            lo = np.array([sc.bounds_lo for sc in env.scenes], dtype=np.float64)
+            hi = np.array([sc.bounds_hi for sc in env.scenes], dtype=np.float64)
+            self._bounds = (env, lo, hi)
+        return self._bounds[1], self._bounds[2]
 
     def _z_cap(self, env: Any) -> np.ndarray:
         """Per env, the height whose plane the sampling tracker treats as a ceiling.

@@ -512,6 +512,44 @@ def test_flat_inflated_field_falls_back_to_the_envs_own_field():
     assert not normal.fallback.any()
 
 
+def test_the_flatness_test_is_not_fooled_by_the_lookups_slope_outside_the_scene():
+    """At the side or the top of the scene's box the lookup adds the distance out of the box to Phi: across the box's
+    face a plateau of the inflated field (its unreachable cap) shows a slope of 0.5, above ``flat_slope``. The test
+    keeps its points inside the box, so a vehicle there descends the narrow field instead of a path that never
+    leaves it (the stall of session 75 in a validation maze)."""
+    env = NavigationEnv(num_envs=3, **{"scenes.family": "benchmark", "scenes.indices": [14], "render_depth": False,
+                                       "curriculum.enabled": False})  # fmt: skip
+    env.reset(seed=2)
+    ctrl = PlannerController(BaselineConfig(expert=ExpertConfig(field_radius=0.5, band_iters=0)))
+    lo, hi = np.array(env.scenes[0].bounds_lo), np.array(env.scenes[0].bounds_hi)
+
+    # Free points on the box's faces (y = lo, y = hi, z = hi) in the maze's middle, vehicle radius + 0.2 m clear.
+    def free_point(axis: int, value: float) -> np.ndarray:
+        for xq in np.arange(20.0, 44.0, 0.25):
+            for c in np.arange(0.5, 2.6, 0.5) if axis == 1 else np.arange(-8.0, 8.0, 0.5):
+                p = np.array([xq, value, c]) if axis == 1 else np.array([xq, c, value])
+                if env.field_stack.esdf(np.zeros(1, np.int64), p[None])[0] > 0.4:
+                    return p
+        raise AssertionError(f"no free point on the face {axis} = {value}")
+
+    starts = np.array([free_point(1, lo[1]), free_point(1, hi[1]), free_point(2, hi[2])])
+    goal = np.array([[63.5, 0.0, 1.5]] * 3)
+    opts = {"scene_ids": np.zeros(3, np.int64), "start": starts, "goal": goal, "speed": np.full(3, 3.0)}
+    env.reset(seed=2, options={**opts, "yaw": np.zeros(3)})
+    x, h, ids, anchor = env.local_pos, ctrl.ec.fd_step, env.scene_id_buf, env.anchor_buf
+    phi = ctrl._phi(env, ids, anchor, x)
+    # The inflated field's plateau: its unreachable cap, the largest reachable Phi plus the box's diagonal.
+    assert np.allclose(phi, phi[0]) and np.all(phi > np.linalg.norm(hi - lo))
+    out = x + np.array([[0.0, -h, 0.0], [0.0, h, 0.0], [0.0, 0.0, h]])  # one step out of the box's face
+    assert np.allclose((ctrl._phi(env, ids, anchor, out) - phi) / (2 * h), 0.5)  # what the raw test read: 0.5
+    plan = ctrl.plan(env)
+    assert ctrl.fallback.all()
+    path = plan["path"]
+    k = path.shape[1]
+    g = env.anchor_fields.geodesic(np.repeat(ids, k), np.repeat(anchor, k), path.reshape(-1, 3)).reshape(3, k)
+    assert np.all(g[:, -1] < g[:, 0] - 0.5 * ctrl.ec.horizon)  # the path leaves the edge towards the goal
+
+
 def test_tangent_tracker_follows_the_path_direction_by_hand():
     """tracker: tangent: v_ref = v_r unit(P[k+span] - P[k]) + k_x (P[k] - (p + v lag)), with k = round(|v| lag / ds)."""
     env = _env(n=4, speed=5.0)

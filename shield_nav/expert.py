@@ -60,17 +60,27 @@ from shield_nav.tracking import accel_to_command
 class ExpertConfig:
     """Parameters of :class:`PlannerController` (``baselines.expert`` in an eval or train config)."""
 
-    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"commit_dist": 0.0, "narrow_tangent": True, "band_iters": 0}
+    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {
+        "commit_dist": 0.0,
+        "narrow_tangent": True,
+        "band_iters": 0,
+        "flat_test_inside": False,
+    }
     """Fields added with a default that changed behaviour, and the value a config written before them means
     (:func:`envs.config.stored_config`): route hysteresis came on by default when it was added (2026-11-27), the
-    sampling tracker in the mazes when ``narrow_tangent`` was (2026-12-03); the elastic band was added off
-    (2026-11-27) and came on by default later (2026-12-03), so a config written before the key means it off."""
+    sampling tracker in the mazes when ``narrow_tangent`` was (2026-12-03), the flatness test inside the scene's box
+    when ``flat_test_inside`` was (2026-12-03, session 75); the elastic band was added off (2026-11-27) and came on
+    by default later (2026-12-03), so a config written before the key means it off."""
 
     field_radius: float = 0.5
     """Obstacle inflation of the planning fields [m]; the geodesic paths keep this clearance where there is room."""
     flat_slope: float = 0.3
     """Below this largest |dPhi/dx| at the vehicle the inflated field is taken as flat (the inflation closes the way
     to the goal) and the narrow field is descended instead."""
+    flat_test_inside: bool = True
+    """True: the flatness test's points are kept inside the scene's box. Outside it the lookup adds the distance out
+    of the box to Phi, a slope that is not the field's: at the box's side or top it hid a plateau, and the vehicle
+    stalled there (session 75). False: the test as before (the shipped recipes' teacher)."""
     narrow_clearance: float = 0.6
     """The narrow field (descended where the inflated one is flat, e.g. in a maze of corridors narrower than twice
     ``field_radius``): the geodesic field of the env's own traversable space (the vehicle radius) whose Dijkstra
@@ -724,8 +734,10 @@ class PlannerController:
         # is not the field's and that, at the box's side, hid a plateau (a stall in a box maze, session 75).
         offsets = np.concatenate((np.eye(3) * h, -np.eye(3) * h))  # (6, 3)
         pts = np.concatenate((x[:, None, :], x[:, None, :] + offsets[None]), axis=1)
-        lo, hi = self._box(env)
-        pts = np.clip(pts, lo[ids][:, None, :], hi[ids][:, None, :]).reshape(-1, 3)
+        if ec.flat_test_inside:
+            lo, hi = self._box(env)
+            pts = np.clip(pts, lo[ids][:, None, :], hi[ids][:, None, :])
+        pts = pts.reshape(-1, 3)
         phi0 = self._phi(env, np.repeat(ids, 7), np.repeat(anchor, 7), pts).reshape(n, 7)
         slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
         fallback = slope < ec.flat_slope

@@ -548,6 +548,14 @@ def test_the_flatness_test_is_not_fooled_by_the_lookups_slope_outside_the_scene(
     k = path.shape[1]
     g = env.anchor_fields.geodesic(np.repeat(ids, k), np.repeat(anchor, k), path.reshape(-1, 3)).reshape(3, k)
     assert np.all(g[:, -1] < g[:, 0] - 0.5 * ctrl.ec.horizon)  # the path leaves the edge towards the goal
+    # The test as before (flat_test_inside: false, the shipped recipes' teacher; a config written before the key):
+    # the slope out of the box keeps those vehicles on the inflated field.
+    before = PlannerController(
+        BaselineConfig(expert=ExpertConfig(field_radius=0.5, band_iters=0, flat_test_inside=False))
+    )
+    before.plan(env)
+    assert not before.fallback.any()
+    assert stored_config(ExpertConfig, {})["flat_test_inside"] is False
 
 
 def test_tangent_tracker_follows_the_path_direction_by_hand():

@@ -638,8 +638,7 @@ class PlannerController:
         self.cfg = cfg
         self.ec: ExpertConfig = cfg.expert
         self._own: tuple | None = None
-        self._caps: tuple | None = None  # (env, per-scene height caps) of mppi_below_tops
-        self._bounds: tuple | None = None  # (env, per-scene box corners) of the flatness test
+        self._bounds: tuple | None = None  # (env, per-scene box corners): the flatness test, mppi_below_tops' cap
         self.last: dict[str, np.ndarray] = {}
         self.fallback = np.zeros(0, dtype=bool)
         """(N,) bool of the last trace: envs that descended the narrow field (the inflated one was flat)."""
@@ -1022,14 +1021,11 @@ class PlannerController:
 
         ``inf`` unless ``mppi_below_tops``; else the env's scene top ``bounds_hi.z`` plus the collision radius, in
         the scene's own frame (that of ``env.local_pos``, which the rollouts start from). The per-scene values are
-        computed once per env, as the fields are.
+        computed once per env (:meth:`_box`), as the fields are.
         """
         if not self.ec.mppi_below_tops:
             return np.full(env.num_envs, np.inf)
-        if self._caps is None or self._caps[0] is not env:
-            radius = env.cfg.vehicle.airframe.collision_radius
-            self._caps = (env, np.array([float(sc.bounds_hi[2]) + radius for sc in env.scenes]))
-        return self._caps[1][env.scene_id_buf]
+        return self._box(env)[1][env.scene_id_buf, 2] + env.cfg.vehicle.airframe.collision_radius
 
     def _preview(self, model: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Accelerations (N, 3) and first reference velocities (N, 3) of the ``preview`` tracker."""

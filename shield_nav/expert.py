@@ -81,6 +81,12 @@ class ExpertConfig:
     """True: the flatness test's points are kept inside the scene's box. Outside it the lookup adds the distance out
     of the box to Phi, a slope that is not the field's: at the box's side or top it hid a plateau, and the vehicle
     stalled there (session 75). False: the test as before (the shipped recipes' teacher)."""
+    high_weight: float = 0.0
+    """The inflated field's Dijkstra weighs each metre by ``1 + high_weight * max(0, z - high_ref)`` (``z`` above
+    the scene's floor, m), so the expert's paths keep low where a low way is not much longer (0: off; for
+    teaching: a teacher whose students do not climb over the clutter, docs/expert.md, "Below the tops")."""
+    high_ref: float = 1.5
+    """Height above the scene's floor from which ``high_weight`` weighs the path [m]."""
     narrow_clearance: float = 0.6
     """The narrow field (descended where the inflated one is flat, e.g. in a maze of corridors narrower than twice
     ``field_radius``): the geodesic field of the env's own traversable space (the vehicle radius) whose Dijkstra
@@ -301,7 +307,7 @@ class ExpertConfig:
                      "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag",
                      "accel_budget", "mppi_sigma_z", "mppi_q_pos", "mppi_q_vel", "mppi_r_acc",
                      "mppi_clearance", "mppi_w_clear", "mppi_w_crash", "mppi_narrow_clearance", "mppi_w_high",
-                     "mppi_high"):  # fmt: skip
+                     "mppi_high", "high_weight", "high_ref"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -689,11 +695,14 @@ class PlannerController:
 
         ec = self.ec
         k = env.anchor_fields.count if env.anchor_fields is not None else 0
-        if abs(ec.field_radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9:
+        high = (ec.high_ref, ec.high_weight) if ec.high_weight > 0 else None
+        if abs(ec.field_radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9 and high is None:
             stack, anchors = env.field_stack, env.anchor_fields
         else:
             stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, ec.field_radius)
-            anchors = GoalAnchorFields(env.scenes, stack, k, lazy=True) if k > 0 else None
+            anchors = GoalAnchorFields(env.scenes, stack, k, lazy=True, height_cost=high) if k > 0 else None
+            if high is not None and anchors is None:
+                raise ValueError("baselines.expert.high_weight needs goal anchor fields (episode.goal_anchors > 0)")
         narrow = None
         if ec.narrow_clearance > 0 and k > 0:
             narrow = GoalAnchorFields(env.scenes, env.field_stack, k, lazy=True,

@@ -54,6 +54,9 @@ class GoalAnchorFields:
         clearance_cost: ``(d_ref, weight)``, or None: the Dijkstra then weighs each metre by
             ``1 + weight * max(0, d_ref - d) / d_ref`` (``d`` the ESDF, mean of an edge's end nodes), so shortest
             paths keep to the middle of corridors narrower than ``2 d_ref`` and Phi is a weighted length, not metres.
+        height_cost: ``(h_ref, weight)``, or None: each metre weighs ``weight * max(0, z - h_ref)`` more (``z`` the
+            node's height above the scene's floor ``bounds_lo.z``, in metres; with ``clearance_cost`` the two add),
+            so shortest paths keep low where a low way is not much longer.
 
     Raises:
         ValueError: ``count < 1``, a bad ``clearance_cost``, or a scene whose every anchor is blocked (when that
@@ -70,6 +73,7 @@ class GoalAnchorFields:
         half_size: float = 0.5,
         lazy: bool = False,
         clearance_cost: tuple[float, float] | None = None,
+        height_cost: tuple[float, float] | None = None,
     ) -> None:
         if count < 1:
             raise ValueError(f"anchor count must be >= 1, got {count}")
@@ -77,6 +81,9 @@ class GoalAnchorFields:
                                                and clearance_cost[1] >= 0):  # fmt: skip
             raise ValueError(f"clearance_cost must be (d_ref > 0, weight >= 0), got {clearance_cost}")
         self.clearance_cost = None if clearance_cost is None else (float(clearance_cost[0]), float(clearance_cost[1]))
+        if height_cost is not None and not (len(height_cost) == 2 and height_cost[0] >= 0 and height_cost[1] >= 0):
+            raise ValueError(f"height_cost must be (h_ref >= 0, weight >= 0), got {height_cost}")
+        self.height_cost = None if height_cost is None else (float(height_cost[0]), float(height_cost[1]))
         self.count = count
         self.scenes = list(scenes)
         self.num_scenes = len(self.scenes)
@@ -104,7 +111,9 @@ class GoalAnchorFields:
     def _key(self, s: int) -> str:
         f = self.stack.scene_fields(s)
         key = cache_key(self.scenes[s], f.res, f.vehicle_radius, self._stencil)
-        return key if self.clearance_cost is None else f"{key}|clearance_cost{list(self.clearance_cost)}"
+        if self.clearance_cost is not None:
+            key = f"{key}|clearance_cost{list(self.clearance_cost)}"
+        return key if self.height_cost is None else f"{key}|height_cost{list(self.height_cost)}"
 
     def _ensure_valid(self, scene_ids: np.ndarray) -> None:
         """Anchor validity (some goal node of its box is traversable) of every scene in ``scene_ids``."""
@@ -141,6 +150,11 @@ class GoalAnchorFields:
                 if self.clearance_cost is not None:
                     d_ref, weight = self.clearance_cost
                     cost = 1.0 + weight * np.clip(d_ref - f.esdf, 0.0, d_ref) / d_ref
+                if self.height_cost is not None:
+                    h_ref, weight = self.height_cost
+                    z = f.res * np.arange(f.shape[2], dtype=np.float64)  # above the floor (origin = bounds_lo)
+                    cost = (1.0 if cost is None else cost) + weight * np.maximum(z - h_ref, 0.0)[None, None, :]
+                    cost = np.broadcast_to(cost, f.shape)
                 jobs += [(s, k, trav, fill, cost) for k in todo]
         if not jobs:
             return

@@ -281,3 +281,27 @@ def test_clearance_cost_anchor_fields_are_keyed_apart_and_weigh_narrow_space(tmp
     assert b[1] > a[1] + 0.1
     with pytest.raises(ValueError, match="clearance_cost"):
         GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path, clearance_cost=(0.0, 1.0))
+
+
+def test_height_cost_anchor_fields_charge_height_above_the_reference_by_hand(tmp_path):
+    """Empty default scene, goal box at z 1.0-2.0, cost 1 + 2 max(0, z - 1) per metre (the expert's ``high_*``).
+
+    At z = 1.0 the straight way costs 1 per metre: Phi as without the cost. From z = 2.5 any way crosses the band
+    z 2.0-2.5 (at least 0.5 m where the cost is >= 3): Phi >= the plain one + 2 x 1.0 x 0.5; descending straight
+    down to z = 1.0 first costs 1.5 + 2 x 1.5^2 / 2 (linear cost: the edges' mean of end nodes is exact), a bound
+    above."""
+    from envs.fields.anchors import GoalAnchorFields
+
+    scene = Scene()
+    f = build_fields(scene, resolution=0.25, vehicle_radius=0.2, use_cache=False)
+    plain = GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path)
+    high = GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path, height_cost=(1.0, 2.0))
+    assert plain._file(0, 0) != high._file(0, 0)
+    assert np.asarray(scene.bounds_lo)[2] == 0.0 and plain.anchors[0, 0, 2] == 1.5
+    ids, k = np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64)
+    p = np.array([[20.0, 0.0, 1.0], [20.0, 0.0, 2.5]])
+    a, b = plain.geodesic(ids, k, p), high.geodesic(ids, k, p)
+    assert abs(a[0] - b[0]) < 1e-5
+    assert a[1] + 1.0 - 1e-5 <= b[1] <= b[0] + 1.5 + 2.25 + 1e-5
+    with pytest.raises(ValueError, match="height_cost"):
+        GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path, height_cost=(1.0, -1.0))

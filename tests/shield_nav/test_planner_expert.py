@@ -108,6 +108,29 @@ def test_paths_descend_the_inflated_geodesic_field_and_keep_clearance():
     assert np.all(speed[:, :-1] ** 2 <= speed[:, 1:] ** 2 + 2 * ec.brake_accel * ec.ds + 1e-9)
 
 
+def test_a_height_weight_plans_on_height_weighted_anchor_fields_and_keeps_the_paths_lower():
+    """``high_weight`` > 0: the expert's Phi is that of anchor fields built with ``height_cost=(high_ref, weight)``
+    (rebuilt independently here), and its paths from the same states keep lower than without it."""
+    from envs.fields import scene_field_stack
+    from envs.fields.anchors import GoalAnchorFields
+
+    env = _env()
+    ec = ExpertConfig(band_iters=0, high_weight=1.0, high_ref=1.0)
+    ctrl = PlannerController(BaselineConfig(expert=ec))
+    _, anchors, _ = ctrl._fields(env)
+    assert anchors.height_cost == (1.0, 1.0)
+    stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, ec.field_radius)
+    ref = GoalAnchorFields(env.scenes, stack, env.anchor_fields.count, height_cost=(1.0, 1.0))
+    pts = np.random.default_rng(0).uniform(env.scenes[0].bounds_lo, env.scenes[0].bounds_hi, (64, 3))
+    ids, k = np.zeros(64, dtype=np.int64), np.full(64, int(env.anchor_buf[0]))
+    np.testing.assert_allclose(anchors.geodesic(ids, k, pts), ref.geodesic(ids, k, pts))
+    low = ctrl.plan(env)["path"][..., 2]
+    plain = PlannerController(BaselineConfig(expert=ExpertConfig(band_iters=0))).plan(env)["path"][..., 2]
+    assert low.mean() < plain.mean() - 0.1 and (low.max(axis=1) <= plain.max(axis=1) + 1e-9).all()
+    with pytest.raises(ConfigError, match="high_weight"):
+        ExpertConfig(high_weight=-1.0).validate(prefix="baselines.expert.")
+
+
 def test_band_moves_samples_to_the_neighbours_midpoint_by_hand_in_free_space():
     """One band iteration with band_step 1 far from every obstacle (no push): each inner sample is the midpoint of its
     neighbours before the iteration; a straight, evenly spaced path stays put; the end samples never move."""

@@ -263,11 +263,6 @@ class ExpertConfig:
     the vehicle's sphere passes over every obstacle, the evaluation's ``flew_over``) counts as a ceiling in the
     rollout cost, so the sampled command does not climb over the clutter where it is tight (the volume allows 1 m
     more; docs/expert.md, "Below the tops")."""
-    mppi_w_high: float = 0.0
-    """``mppi``: weight of a predicted height above ``mppi_high`` in the rollout cost, per square metre (0: off; a
-    preference for low flight, docs/expert.md, "Below the tops")."""
-    mppi_high: float = 1.5
-    """``mppi``: height above the scene's floor (``bounds_lo.z``) from which ``mppi_w_high`` is paid [m]."""
     max_tilt_deg: float = 50.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50; 48 until 2026-11-29)."""
     visibility: str = "map"
@@ -306,8 +301,8 @@ class ExpertConfig:
                      "commit_slack", "predict_s", "predict_min_speed", "route_tol", "preview_q_pos",
                      "preview_q_vel", "preview_r_acc", "preview_r_jerk", "preview_drag",
                      "accel_budget", "mppi_sigma_z", "mppi_q_pos", "mppi_q_vel", "mppi_r_acc",
-                     "mppi_clearance", "mppi_w_clear", "mppi_w_crash", "mppi_narrow_clearance", "mppi_w_high",
-                     "mppi_high", "high_weight", "high_ref"):  # fmt: skip
+                     "mppi_clearance", "mppi_w_clear", "mppi_w_crash", "mppi_narrow_clearance", "high_weight",
+                     "high_ref"):  # fmt: skip
             require(getattr(self, name) >= 0, f"{prefix}{name}", f"must be >= 0, got {getattr(self, name)}")
         require(self.smooth_window >= 1 and self.smooth_window % 2 == 1, f"{prefix}smooth_window",
                 f"must be an odd number >= 1, got {self.smooth_window}")  # fmt: skip
@@ -1019,8 +1014,7 @@ class PlannerController:
                       np.ascontiguousarray(model["ref_p"][:, :t]), np.ascontiguousarray(model["ref_v"][:, :t]),
                       m.a_mat, m.b_vec, m.e_vec, ec.mppi_q_pos, ec.mppi_q_vel, ec.mppi_r_acc, ec.mppi_w_clear,
                       clearance, ec.mppi_w_crash, env.cfg.vehicle.airframe.collision_radius, ef[:7],
-                      costs, self._z_cap(env), ec.mppi_w_high,
-                      self._box(env)[0][env.scene_id_buf, 2] + ec.mppi_high)  # fmt: skip
+                      costs, self._z_cap(env))  # fmt: skip
         m.plan = path_integral_mean(u, costs, ec.mppi_temperature)
         return m.plan[:, 0]
 

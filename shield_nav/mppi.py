@@ -18,9 +18,7 @@ current velocity, held. Each sampled input is clamped to the tilt cone ``|u_xy| 
 ``+ w_clear max(0, clearance - d(p_k))^2 + w_crash [d(p_k) < radius]`` with ``d`` the ESDF (floor and ceiling
 included) and ``radius`` the vehicle's collision radius, ``+ r_acc |u_k|^2``. With a height cap ``z_cap`` (finite
 per env) ``d`` is ``min(ESDF, z_cap - z_k)``: the plane ``z = z_cap`` counts as one more ceiling (the expert's
-``mppi_below_tops`` puts it where a sphere would pass over the obstacles' tops). With a height weight ``w_high``
-each predicted state also pays ``w_high max(0, z_k - z_high)^2`` (the expert's ``mppi_w_high``, ``mppi_high``: a
-preference for low flight).
+``mppi_below_tops`` puts it where a sphere would pass over the obstacles' tops).
 
 **Samples.** ``samples`` sequences per env: sample 0 is the last plan advanced by the control period (its last
 input repeated), sample 1 holds the nominal command (the preview tracker's) over the horizon, the others add Gaussian
@@ -60,8 +58,6 @@ def rollout_costs(
     e: tuple,
     out: np.ndarray,
     z_cap: np.ndarray,
-    w_high: float,
-    z_high: np.ndarray,
 ) -> None:
     """Costs ``out`` (N, S) of input sequences ``u`` (N, S, T, 3) from states ``x0`` (N, 3 axes, [p, v, a]).
 
@@ -69,8 +65,7 @@ def rollout_costs(
     ``a_mat`` (3, 3), ``b_vec`` and ``e_vec`` (3,) the per-axis discretisation (:func:`shield_nav.preview.discretise`);
     ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin, res, esdf)``; ``z_cap`` (N,) a height per
     env whose plane counts as a ceiling in the clearance and crash terms (``inf``: none); ``clearance`` (N,) the ESDF
-    below which each env's predicted positions pay ``w_clear``; ``w_high`` the weight of a predicted height above
-    each env's ``z_high`` (N,) (per square metre; 0: no height term). The inputs must already lie in the flyable set
+    below which each env's predicted positions pay ``w_clear``. The inputs must already lie in the flyable set
     (:func:`clamp_inputs`).
     """
     n, s_count, t_count, _ = u.shape
@@ -100,9 +95,6 @@ def rollout_costs(
                 cost += w_clear * gap * gap
             if d < radius:
                 cost += w_crash
-            rise = st[2, 0] - z_high[i]
-            if w_high > 0.0 and rise > 0.0:
-                cost += w_high * rise * rise
         out[i, s] = cost
 
 

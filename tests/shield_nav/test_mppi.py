@@ -25,7 +25,7 @@ def esdf_fields():
     return stack, stack.kernel_fields(np.zeros(2, dtype=np.int64))[:7]
 
 
-def _costs(fields, x0, u, ref_p, ref_v, z_cap=None, w_high=0.0, z_high=0.0, **w):
+def _costs(fields, x0, u, ref_p, ref_v, z_cap=None, **w):
     tau, dt = 0.2, 0.04
     a_m, b, e = discretise(tau, dt)
     n, s = u.shape[:2]
@@ -35,8 +35,7 @@ def _costs(fields, x0, u, ref_p, ref_v, z_cap=None, w_high=0.0, z_high=0.0, **w)
     clearance = np.broadcast_to(np.asarray(kw["clearance"], dtype=float), (n,)).copy()
     rollout_costs(x0, u, np.zeros((n, 3)), ref_p, ref_v, a_m, b, e, kw["q_pos"], kw["q_vel"], kw["r_acc"],
                   kw["w_clear"], clearance, kw["w_crash"], 0.2, fields, out,
-                  np.full(n, np.inf) if z_cap is None else np.asarray(z_cap, dtype=float), w_high,
-                  np.broadcast_to(np.asarray(z_high, dtype=float), (n,)).copy())  # fmt: skip
+                  np.full(n, np.inf) if z_cap is None else np.asarray(z_cap, dtype=float))  # fmt: skip
     return out
 
 
@@ -106,32 +105,6 @@ def test_a_height_cap_counts_as_a_ceiling_in_the_clearance_and_crash_terms(esdf_
     np.testing.assert_allclose(out[:, 0], [0.0, 0.0], atol=1e-12)
 
 
-def test_a_height_weight_charges_the_square_of_each_predicted_state_above_its_envs_height(esdf_fields):
-    """Env 0 rises from 1.5 m at a held +5 m/s^2, env 1 hovers at 1.5 m; heights 1.6 and 1.4 m, weight 10: env 0
-    pays 10 (z_k - 1.6)^2 for each z_k above 1.6 (z_k by hand as in the closed-form test), env 1 10 x 0.1^2 per
-    step; weight 0 pays nothing (free space, reference on the path flown: only the tracking terms by hand)."""
-    _, fields = esdf_fields
-    tau, dt, steps, u = 0.2, 0.04, 20, 5.0
-    x0 = np.zeros((2, 3, 3))
-    x0[:, :, 0] = (1.5, -2.0, 1.5)
-    seq = np.zeros((2, 1, steps, 3))
-    seq[0, 0, :, 2] = u
-    t = dt * np.arange(1, steps + 1)
-    q = np.exp(-t / tau)
-    z = 1.5 + u * (t**2 / 2 - tau * t + tau**2 * (1 - q))
-    ref_p = np.repeat(x0[:, None, :, 0], steps, axis=1)
-    ref_p[0, :, 2] = z  # env 0's reference is its own rise: no position error
-    ref_v = np.zeros((2, steps, 3))
-    vz = u * (t - tau * (1 - q))
-    base = 0.3 * np.sum(vz**2) + 0.001 * steps * u**2
-    out = _costs(fields, x0, seq, ref_p, ref_v, w_high=10.0, z_high=[1.6, 1.4])
-    assert z.max() - 1.6 > 0.05 and (z < 1.6).any()  # the rise crosses env 0's height inside the horizon
-    assert out[0, 0] == pytest.approx(base + 10.0 * np.sum(np.maximum(z - 1.6, 0.0) ** 2), rel=1e-9)
-    assert out[1, 0] == pytest.approx(steps * 10.0 * 0.1**2, rel=1e-9)
-    out = _costs(fields, x0, seq, ref_p, ref_v, w_high=0.0, z_high=[1.6, 1.4])
-    assert out[0, 0] == pytest.approx(base, rel=1e-9) and out[1, 0] == pytest.approx(0.0, abs=1e-12)
-
-
 def test_clamp_inputs_to_the_vertical_limit_then_the_tilt_cone():
     u = np.array([[20.0, 0.0, 0.0], [3.0, 4.0, 9.0], [1.0, 0.0, -2.0]])
     out = clamp_inputs(u, 9.81, 45.0, 5.0)
@@ -191,8 +164,7 @@ def test_candidates_hold_the_base_the_nominal_and_piecewise_constant_noise():
 def test_mppi_keys_are_checked_by_name():
     ExpertConfig(tracker="mppi").validate()
     for key, bad in (("mppi_samples", 2), ("mppi_steps", 0), ("mppi_hold", 0), ("mppi_temperature", 0.0),
-                     ("mppi_w_clear", -1.0), ("mppi_sigma", 0.0), ("mppi_w_high", -1.0),
-                     ("mppi_high", -0.5)):  # fmt: skip
+                     ("mppi_w_clear", -1.0), ("mppi_sigma", 0.0)):  # fmt: skip
         with pytest.raises(ConfigError, match=key):
             ExpertConfig(tracker="mppi", **{key: bad}).validate(prefix="baselines.expert.")
     with pytest.raises(ConfigError, match="mppi_narrow_clearance"):

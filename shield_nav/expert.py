@@ -84,7 +84,7 @@ class ExpertConfig:
     high_weight: float = 0.0
     """The inflated field's Dijkstra weighs each metre by ``1 + high_weight * max(0, z - high_ref)`` (``z`` above
     the scene's floor, m), so the expert's paths keep low where a low way is not much longer (0: off; for
-    teaching: a teacher whose students do not climb over the clutter, docs/expert.md, "Below the tops")."""
+    teaching: a teacher whose students do not climb over the clutter, docs/expert.md, "Low routes")."""
     high_ref: float = 1.5
     """Height above the scene's floor from which ``high_weight`` weighs the path [m]."""
     narrow_clearance: float = 0.6
@@ -691,13 +691,15 @@ class PlannerController:
         ec = self.ec
         k = env.anchor_fields.count if env.anchor_fields is not None else 0
         high = (ec.high_ref, ec.high_weight) if ec.high_weight > 0 else None
-        if abs(ec.field_radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9 and high is None:
-            stack, anchors = env.field_stack, env.anchor_fields
+        if high is not None and k == 0:
+            raise ValueError("baselines.expert.high_weight needs goal anchor fields (episode.goal_anchors > 0)")
+        if abs(ec.field_radius - env.cfg.vehicle.airframe.collision_radius) < 1e-9:
+            stack = env.field_stack
+            anchors = env.anchor_fields if high is None else GoalAnchorFields(env.scenes, stack, k, lazy=True,
+                                                                               height_cost=high)  # fmt: skip
         else:
             stack = scene_field_stack(env.scenes, env.cfg.scenes.field_resolution, ec.field_radius)
             anchors = GoalAnchorFields(env.scenes, stack, k, lazy=True, height_cost=high) if k > 0 else None
-            if high is not None and anchors is None:
-                raise ValueError("baselines.expert.high_weight needs goal anchor fields (episode.goal_anchors > 0)")
         narrow = None
         if ec.narrow_clearance > 0 and k > 0:
             narrow = GoalAnchorFields(env.scenes, env.field_stack, k, lazy=True,

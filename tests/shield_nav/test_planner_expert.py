@@ -129,6 +129,10 @@ def test_a_height_weight_plans_on_height_weighted_anchor_fields_and_keeps_the_pa
     assert low.mean() < plain.mean() - 0.1 and (low.max(axis=1) <= plain.max(axis=1) + 1e-9).all()
     with pytest.raises(ConfigError, match="high_weight"):
         ExpertConfig(high_weight=-1.0).validate(prefix="baselines.expert.")
+    bare = NavigationEnv(num_envs=2, **SMALL, **{"episode.goal_anchors": 0})
+    bare.reset(seed=3)
+    with pytest.raises(ValueError, match="high_weight needs goal anchor fields"):
+        ctrl._fields(bare)
 
 
 def test_band_moves_samples_to_the_neighbours_midpoint_by_hand_in_free_space():

@@ -1,4 +1,4 @@
-"""What did the crashed flights hit? Collision breakdown of an evaluation output by obstacle class.
+"""Collision and time-out breakdowns of an eval output: what did the crashes hit, how did the time-outs end?
 
 ``python -m shield_nav.collisions eval_out/ablation [--rows a,b] [--speeds 3,5] [--json]``
 
@@ -24,6 +24,11 @@ before the crash (``yaw_rate_deg_s``: turning hard, or flying straight). Outputs
 column, the share of the control steps since the previous point on which the shield acted (since 2026-11-28,
 later); from it ``shield_share`` is the mean over the crashes of the share of their last half second's steps with the
 shield acting.
+
+``--timeouts`` asks about the flights that ran out of time instead: did each one stall (no metre of closing on the
+goal in its last 5 s: circling or hovering in a pocket), or was it still on its way (too slow)? It reports, per row
+and speed, the stalled count, when the stalled flights last closed in and how far they were left, and the closing
+flights' distance left and closing speed (:func:`timeouts`; the stall rule is :class:`shield_nav.escape.StallEscape`'s).
 """
 
 from __future__ import annotations
@@ -178,11 +183,12 @@ def point_times(steps: int, every: int, dt: float) -> np.ndarray:
 
 
 def _crashes(
-    out_dir: str, rows: list[str] | None, speeds: list[float] | None
+    out_dir: str, rows: list[str] | None, speeds: list[float] | None, outcome: str = "collision"
 ) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray], list[np.ndarray]]]:
     """Per unit of an eval folder: ``(row, speed)``, its scene, the crashed trajectories and their points' times.
 
-    The scene is ``None`` without crashes; the times [s] come from :func:`point_times`.
+    The scene is ``None`` without crashes (and for any ``outcome`` but ``collision``: the time-out breakdown needs
+    none); the times [s] come from :func:`point_times`. ``outcome`` picks the trials (``collision``, ``timeout``).
     """
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
     cfg = None
@@ -197,11 +203,11 @@ def _crashes(
             unit = json.load(fh)
         if (rows and unit["row"] not in rows) or (speeds and float(unit["speed"]) not in speeds):
             continue
-        hits = [t for t in unit["trials"] if t["outcome"] == "collision"]
+        hits = [t for t in unit["trials"] if t["outcome"] == outcome]
         for t in hits:
             if not t.get("traj"):
                 raise ValueError(f"{path}: trial {t.get('trial')} has no trajectory (trajectory_every too large?)")
-        if not hits:
+        if not hits or outcome != "collision":
             scene = None
         elif cfg is not None:
             from shield_nav.evaluation import flown_scene
@@ -219,7 +225,76 @@ def _crashes(
 
             every, dt = EvalConfig().trajectory_every, VehicleConfig().command_dt
         trajs = [np.asarray(t["traj"]) for t in hits]
+        if outcome != "collision":  # the goal rides along as the trajectory's last row (read by timeouts())
+            goals = [np.asarray(t["goal"], dtype=np.float64)[None] for t in hits]
+            trajs = [np.vstack((tr[:, :3], g)) for tr, g in zip(trajs, goals, strict=True)]
         yield (unit["row"], float(unit["speed"])), scene, trajs, [point_times(int(t["steps"]), every, dt) for t in hits]
+
+
+def last_progress(times: np.ndarray, dist: np.ndarray, min_progress: float) -> float:
+    """Time [s] of a flight's last progress (the stall rule of :class:`shield_nav.escape.StallEscape`).
+
+    The last time its distance to the goal went ``min_progress`` below its best since the previous such time.
+    """
+    best, at = float(dist[0]), float(times[0])
+    for t, d in zip(times[1:], dist[1:], strict=True):
+        if d < best - min_progress:
+            best, at = float(d), float(t)
+    return at
+
+
+def timeouts(
+    out_dir: str,
+    rows: list[str] | None = None,
+    speeds: list[float] | None = None,
+    window_s: float = 5.0,
+    min_progress: float = 1.0,
+) -> dict[tuple[str, float], dict]:
+    """(row, speed) -> how its time-outs end: stalled, or still closing on the goal when the time ran out.
+
+    ``stalled``: no ``min_progress`` of closing on the goal in the last ``window_s`` s (circling or hovering).
+
+    Per (row, speed): ``n`` time-outs, ``stalled``, the median time the stalled flights last made progress
+    (``stalled_since_s``, from the start) and their median distance left to the goal (``stalled_left_m``), the closing
+    flights' median distance left (``closing_left_m``) and median closing speed over the last window
+    (``closing_m_s``). Distances are straight-line, from the recorded trajectory points.
+    """
+    out: dict[tuple[str, float], dict] = {}
+    raw: dict[tuple[str, float], list[tuple[bool, float, float, float]]] = defaultdict(list)
+    for key, _, trajs, times in _crashes(out_dir, rows, speeds, outcome="timeout"):
+        raw[key]  # noqa: B018  (rows without time-outs still appear)
+        for tr, tm in zip(trajs, times, strict=True):
+            dist = np.linalg.norm(tr[:-1] - tr[-1], axis=1)
+            since = last_progress(tm, dist, min_progress)
+            stalled = tm[-1] - since >= window_s
+            k = int(np.searchsorted(tm, tm[-1] - window_s))
+            rate = (dist[k] - dist[-1]) / max(tm[-1] - tm[k], 1e-9)
+            raw[key].append((bool(stalled), since, float(dist[-1]), float(rate)))
+
+    def med(x: list[float]) -> float | None:
+        return float(np.median(x)) if x else None
+
+    for key, items in raw.items():
+        st = [i for i in items if i[0]]
+        cl = [i for i in items if not i[0]]
+        out[key] = {"n": len(items), "stalled": len(st), "stalled_since_s": med([i[1] for i in st]),
+                    "stalled_left_m": med([i[2] for i in st]), "closing_left_m": med([i[2] for i in cl]),
+                    "closing_m_s": med([i[3] for i in cl])}  # fmt: skip
+    return out
+
+
+def format_timeouts(result: dict[tuple[str, float], dict]) -> str:
+    """Markdown table of :func:`timeouts`."""
+
+    def num(x: float | None) -> str:
+        return "-" if x is None else f"{x:.1f}"
+
+    lines = ["| row | speed | time-outs | stalled | stalled since [s] | stalled: left [m] | closing: left [m] | "
+             "closing [m/s] |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for (row, speed), v in sorted(result.items()):
+        cols = [v["stalled_since_s"], v["stalled_left_m"], v["closing_left_m"], v["closing_m_s"]]
+        lines.append(f"| {row} | {speed:g} | {v['n']} | {v['stalled']} | " + " | ".join(map(num, cols)) + " |")
+    return "\n".join(lines)
 
 
 def breakdown(
@@ -336,6 +411,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all)")
     ap.add_argument("--json", action="store_true", help="print one JSON line instead of the table")
     ap.add_argument("--bearing", action="store_true", help="approach bearings (in view or beside) instead of classes")
+    ap.add_argument("--timeouts", action="store_true",
+                    help="how the time-outs end (stalled or still closing) instead of the collisions")  # fmt: skip
     ap.add_argument("--hfov", type=float, default=CameraConfig().hfov_deg,
                     help="camera horizontal field of view, deg (default: the camera's)")  # fmt: skip
     a = ap.parse_args(argv)
@@ -346,6 +423,15 @@ def main(argv: list[str] | None = None) -> None:
         speeds = [float(s) for s in a.speeds.split(",") if s] or None
     except ValueError:
         ap.error(f"--speeds must be numbers, got {a.speeds!r}")
+    if a.timeouts and a.bearing:
+        ap.error("--timeouts and --bearing ask different questions; give one")
+    if a.timeouts:
+        res = timeouts(a.out_dir, rows, speeds)
+        if a.json:
+            print(json.dumps([{"row": r, "speed": sp, **v} for (r, sp), v in sorted(res.items())]))
+        else:
+            print(format_timeouts(res))
+        return
     if a.bearing:
         res = bearings(a.out_dir, rows, speeds, a.hfov)
         if a.json:

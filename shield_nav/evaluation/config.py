@@ -12,6 +12,7 @@ import yaml
 from envs.config import ConfigError, load_config, require
 from envs.scenes import FAMILIES
 from shield_nav.baselines import BaselineConfig, make_baseline
+from shield_nav.escape import EscapeConfig
 from shield_nav.shield import ShieldConfig
 
 EVAL_FORMAT_VERSION = 1
@@ -43,6 +44,9 @@ class RowConfig:
     shield_overrides: dict[str, Any] = field(default_factory=dict)
     """This row's shield settings over the run's ``shield`` section (keys of ``ShieldConfig``), e.g. the paper's
     formulation beside the default shield in one table (``full_paper_shield`` in configs/eval/rows.yaml)."""
+    escape: bool = False
+    """Put the stall escape (:mod:`shield_nav.escape`, the run's ``escape`` section) between the goal and the
+    policy; ``controller: policy`` only."""
 
 
 def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> ShieldConfig:
@@ -155,6 +159,8 @@ class EvalConfig:
     """Dotted ``NavConfig`` overrides (``a.b=value``) applied to every unit's env."""
     shield: ShieldConfig = field(default_factory=ShieldConfig)
     """HOCBF shield of rows with ``shield: true``."""
+    escape: EscapeConfig = field(default_factory=EscapeConfig)
+    """Stall escape of rows with ``escape: true`` (:mod:`shield_nav.escape`)."""
     baselines: BaselineConfig = field(default_factory=BaselineConfig)
     """Baseline controller parameters."""
     plots: bool = True
@@ -234,6 +240,9 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
             make_baseline(row.controller, cfg.baselines)  # raises on an unknown controller name
         if row.shield_overrides and not row.shield:
             raise EvalError(f"configuration {name!r} has shield_overrides but no shield ('shield: true')")
+        if row.escape and row.controller != "policy":
+            raise EvalError(f"configuration {name!r} has escape: true but controller {row.controller!r}; the stall "
+                            f"escape steers a depth policy's goal input ('controller: policy')")  # fmt: skip
         row_shield_config(cfg.shield, row, name)  # raises on a bad key or value
         out[name] = row
     return out

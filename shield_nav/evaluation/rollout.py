@@ -15,6 +15,7 @@ from envs.config import ConfigError, load_config
 from envs.navigation.config import NavConfig
 from envs.scenes import FAMILIES, make_scene
 from shield_nav.baselines import Controller, make_baseline
+from shield_nav.escape import StallEscape
 from shield_nav.evaluation.config import EVAL_FORMAT_VERSION, EvalConfig, EvalError, RowConfig, row_shield_config
 from shield_nav.evaluation.metrics import aggregate, trajectory_metrics
 from shield_nav.evaluation.policies import LoadedPolicy, LoadedTeacher, PolicyInfo, load_policy, load_teacher
@@ -172,6 +173,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
     shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
+    escape = StallEscape(cfg.escape, n, env.cfg.vehicle.command_dt) if row.escape else None
+    volume = (np.asarray(env.scenes[0].bounds_lo[:2]), np.asarray(env.scenes[0].bounds_hi[:2]))  # one scene per unit
     pick_hypotheses = shield is not None and policy is not None and shield.cfg.hypotheses != "top"
     ids = np.zeros(n, dtype=np.int64)
     pos0 = env.local_pos.copy()
@@ -193,6 +196,9 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     while (end_step < 0).any():
         live = end_step < 0
         alt_act = alt_cmd = None
+        if escape is not None:  # the policy reads the escape's goal input while a flight escapes
+            state = escape.apply(obs["state"], env.local_pos, env.goal_buf, env.sensor_depth_buf, t, live, volume)
+            obs = {**obs, "state": state}
         if policy is not None or teacher is not None:
             if policy is not None and pick_hypotheses:
                 act, alt_act, h = policy.step_hypotheses(policy.state_of(obs), obs["depth"], h)
@@ -274,6 +280,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         }
         if shield is not None:
             rec["shield"] = {k: (v[i].item()) for k, v in sh.items()}
+        if escape is not None:
+            rec["escape"] = {"escapes": int(escape.count[i]), "escape_steps": int(escape.escape_steps[i])}
         records.append(rec)
     return records
 

@@ -16,10 +16,13 @@ from shield_nav.collisions import (
     classify_hit,
     format_bearings,
     format_table,
+    format_timeouts,
+    last_progress,
     main,
     point_times,
     primitive_class,
     shield_share_before,
+    timeouts,
     yaw_rate_before,
 )
 
@@ -237,3 +240,32 @@ def test_yaw_rate_before_a_crash_by_hand():
     assert yaw_rate_before(tr2[:1], np.array([0.0])) is None  # a single point: no rate
     with pytest.raises(ValueError, match="5"):
         yaw_rate_before(tr2[:, :4], np.array([0.0, 0.1, 0.2]))
+
+
+def test_timeouts_tell_a_stall_from_a_slow_flight_by_hand(tmp_path, capsys):
+    """Two time-outs of 30 s (a point every 0.1 s), the goal 50 m ahead. A: 0.06 m per point for 10 s, then a hover:
+    its distance goes more than 1 m below its best at points 17, 34, 51, 68 and 85 (1.02 m each), so it last closed at
+    8.5 s, stalled, 44 m left. B: 1 m/s throughout: closing at 1 m/s, 20 m left. The success is not counted."""
+    k = np.arange(301)
+    a = np.c_[np.minimum(0.06 * k, 6.0), np.zeros(301), np.full(301, 1.5)]
+    b = np.c_[0.1 * k, np.zeros(301), np.full(301, 1.5)]
+    goal = [50.0, 0.0, 1.5]
+    assert last_progress(k * 0.1, 50.0 - a[:, 0], 1.0) == pytest.approx(8.5)
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "timeout", "goal": goal, "traj": a.tolist()},
+        {"trial": 1, "outcome": "timeout", "goal": goal, "traj": b.tolist()},
+        {"trial": 2, "outcome": "success", "goal": goal, "traj": b[:10].tolist()},
+    ])  # fmt: skip
+    res = timeouts(str(tmp_path))
+    assert list(res) == [("r", 3.0)]
+    v = res[("r", 3.0)]
+    assert (v["n"], v["stalled"]) == (2, 1)
+    assert v["stalled_since_s"] == pytest.approx(8.5) and v["stalled_left_m"] == pytest.approx(44.0)
+    assert v["closing_left_m"] == pytest.approx(20.0) and v["closing_m_s"] == pytest.approx(1.0)
+    assert "| r | 3 | 2 | 1 | 8.5 | 44.0 | 20.0 | 1.0 |" in format_timeouts(res)
+    # A longer window: A's 21.5 s without progress still count as a stall; a 25 s window does not.
+    assert timeouts(str(tmp_path), window_s=25.0)[("r", 3.0)]["stalled"] == 0
+    main([str(tmp_path), "--timeouts", "--json"])
+    assert json.loads(capsys.readouterr().out.strip())[0]["stalled"] == 1
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--timeouts", "--bearing"])

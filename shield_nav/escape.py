@@ -1,0 +1,211 @@
+"""A stall escape for a deployed depth policy: when a flight stops closing on its goal, point the goal input sideways.
+
+A goal-seeking depth policy that meets a pocket open away from the goal (a dead end of a Perlin field, a box maze's
+closed corridor) can circle or hover in it until its time limit: its image shows no way on, and its goal input keeps
+pulling it back to the pocket's far wall. :class:`StallEscape` is a layer between the goal and the policy that uses
+nothing the policy does not already read (its own position and heading estimate, the goal, the depth image):
+
+- **Stalled**: the straight-line distance to the goal has not gone ``min_progress`` below its best within the last
+  ``window_s`` seconds.
+- **Escape**: for ``hold_s`` seconds the policy's goal input (``goal_xy_h`` of :data:`envs.navigation.env.STATE_LAYOUT`)
+  points along a horizontal direction at 90 deg to the goal's, as if the goal lay ``goal_distance`` or more that way;
+  the goal's height input stays. The first side of a flight is the one whose half of the depth image shows more free
+  range (each column's mean of ``min(depth, depth_cap)``); each later escape of the flight takes the other side and
+  holds ``hold_growth_s`` longer.
+- After the hold the true goal input returns, and the best distance starts afresh from the current one.
+
+The shield, the success test and the time limit are untouched: the layer only changes which way the policy is asked
+to fly, and only in flights that are not closing on their goal. Vectorised over the batch; no per-env Python loop.
+Its measured effect is in docs/shield.md ("Stall escape") and the lab log (2026-12-03, session 77).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.config import require
+from envs.navigation.env import STATE_LAYOUT
+
+
+def _slice(name: str) -> slice:
+    """The columns of ``name`` in the policy's state vector."""
+    start = 0
+    for key, size, _ in STATE_LAYOUT:
+        if key == name:
+            return slice(start, start + size)
+        start += size
+    raise KeyError(name)
+
+
+GOAL_COLUMNS = _slice("goal_xy_h")
+"""Columns of the heading-frame goal vector in the state (two)."""
+ROT_COLUMNS = _slice("R_wb")
+"""Columns of the body-to-world rotation (row-major) in the state (nine)."""
+
+
+@dataclass
+class EscapeConfig:
+    """Stall-escape parameters (rows with ``escape: true``; lengths m, times s)."""
+
+    window_s: float = 5.0
+    """A flight is stalled when its distance to the goal has not gone ``min_progress`` below its best for this long."""
+    min_progress: float = 1.0
+    """Progress [m] that counts as closing on the goal."""
+    hold_s: float = 4.0
+    """Duration of a flight's first escape."""
+    hold_growth_s: float = 2.0
+    """Each later escape of the same flight holds this much longer than the one before."""
+    goal_distance: float = 10.0
+    """The escape's virtual goal lies at least this far along the escape direction (the goal input's saturation:
+    the state scales the goal vector by ``max(|offset|, 10 m)``)."""
+    depth_cap: float = 10.0
+    """Depth [m] beyond which the image counts as free when choosing the first side."""
+    bounds_margin: float = 0.0
+    """0: off. If > 0 (with the flight volume's horizontal bounds given, the operator's geofence, not the obstacles),
+    a side whose direction reaches the bounds within this distance [m] of the vehicle is not taken while the other
+    side has the room (both short: the side with more room), and a hold ends early when the room left ahead along
+    its direction falls below ``bounds_stop``."""
+    bounds_stop: float = 2.0
+    """With ``bounds_margin`` > 0: the room [m] ahead to the bounds at which a hold ends early."""
+
+    def validate(self, prefix: str = "") -> None:
+        """Reject bad values, naming the key."""
+        for key in ("window_s", "min_progress", "hold_s", "goal_distance", "depth_cap", "bounds_stop"):
+            v = getattr(self, key)
+            require(math.isfinite(v) and v > 0, f"{prefix}{key}", f"must be finite and > 0, got {v}")
+        for key in ("hold_growth_s", "bounds_margin"):
+            v = getattr(self, key)
+            require(math.isfinite(v) and v >= 0, f"{prefix}{key}", f"must be finite and >= 0, got {v}")
+
+
+class StallEscape:
+    """Per-flight stall detector and goal-input override for a batch of ``n`` flights (see the module docstring).
+
+    Call :meth:`apply` once per control step, before the policy reads the observation; it returns the state the
+    policy should read (a copy when any flight escapes). ``t`` counts control steps of ``dt`` seconds from the reset.
+    """
+
+    def __init__(self, cfg: EscapeConfig, n: int, dt: float) -> None:  # noqa: D107
+        cfg.validate("escape.")
+        self.cfg, self.n, self.dt = cfg, n, dt
+        self.best = np.full(n, np.inf)
+        self.best_t = np.zeros(n)
+        self.until = np.full(n, -np.inf)
+        self.direction = np.zeros((n, 2))
+        self.count = np.zeros(n, dtype=np.int64)
+        self.side = np.zeros(n)
+        self.escape_steps = np.zeros(n, dtype=np.int64)
+
+    def apply(
+        self,
+        state: np.ndarray,
+        pos: np.ndarray,
+        goal: np.ndarray,
+        depth_m: np.ndarray,
+        t: int,
+        live: np.ndarray | None = None,
+        bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """The policy's state (N, S) with the goal input of escaping flights replaced.
+
+        ``pos``, ``goal`` (N, 3): the vehicle's position estimate and its goal (the quantities the state's goal
+        vector is computed from); ``depth_m`` (N, 1, H, W) metric depth (0 or non-finite: no return, counted free);
+        ``live`` (N,) bool: flights still flying (default all); a finished flight starts no escape and counts no
+        escape step. ``bounds``: the flight volume's horizontal corners ``(lo, hi)``, each (2,) or (N, 2), in the
+        frame of ``pos`` (read with ``bounds_margin`` > 0, which then requires them).
+        """
+        cfg, now = self.cfg, t * self.dt
+        if cfg.bounds_margin > 0 and bounds is None:
+            raise ValueError("stall escape: escape.bounds_margin > 0 needs the flight volume's bounds")
+        use_bounds = bounds if cfg.bounds_margin > 0 else None
+        if not np.isfinite(state).all() or not np.isfinite(pos).all():
+            raise FloatingPointError("stall escape: non-finite state or position")
+        to_goal = goal[:, :2] - pos[:, :2]
+        dist = np.linalg.norm(goal - pos, axis=1)
+        gained = dist < self.best - cfg.min_progress
+        self.best = np.where(gained, dist, self.best)
+        self.best_t = np.where(gained, now, self.best_t)
+        escaping = now < self.until
+        if use_bounds is not None and escaping.any():  # a hold ends where the volume's side comes near
+            room = _room(pos[:, :2], self.direction, *use_bounds)
+            stop = escaping & (room < cfg.bounds_stop)
+            self.until[stop] = now
+            escaping &= ~stop
+        ended = ~escaping & (self.best_t < self.until)  # a hold is over: a fresh window from the current distance
+        self.best = np.where(ended, dist, self.best)
+        self.best_t = np.where(ended, now, self.best_t)
+        live = np.ones(self.n, dtype=bool) if live is None else np.asarray(live, dtype=bool)
+        stalled = live & ~escaping & (now - self.best_t >= cfg.window_s)
+        if stalled.any():
+            self._start(np.flatnonzero(stalled), to_goal, state, depth_m, now, pos, use_bounds)
+            escaping = now < self.until
+        if not escaping.any():
+            return state
+        self.escape_steps += escaping & live
+        out = state.copy()
+        i = np.flatnonzero(escaping)
+        r = state[i, ROT_COLUMNS].astype(np.float64)  # row-major R_wb: r[0] = R00, r[3] = R10
+        psi = np.arctan2(r[:, 3], r[:, 0])
+        c, s = np.cos(psi), np.sin(psi)
+        e = self.direction[i]
+        out[i, GOAL_COLUMNS.start] = c * e[:, 0] + s * e[:, 1]  # Rz(-psi) e: unit length, i.e. >= 10 m away
+        out[i, GOAL_COLUMNS.start + 1] = -s * e[:, 0] + c * e[:, 1]
+        return out
+
+    def _start(
+        self,
+        ids: np.ndarray,
+        to_goal: np.ndarray,
+        state: np.ndarray,
+        depth_m: np.ndarray,
+        now: float,
+        pos: np.ndarray,
+        bounds: tuple[np.ndarray, np.ndarray] | None,
+    ) -> None:
+        """Begin an escape for flights ``ids``: choose the side, fix the direction, set the hold."""
+        cfg = self.cfg
+        g = to_goal[ids]
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        u = np.where(norm > 1e-9, g / np.maximum(norm, 1e-9), np.array([1.0, 0.0]))
+        left = np.stack((-u[:, 1], u[:, 0]), axis=1)  # the goal direction turned +90 deg (z up)
+        first = self.count[ids] == 0
+        side = -self.side[ids]  # later escapes: the other side
+        if first.any():
+            f = ids[first]
+            d = np.asarray(depth_m[f, 0], dtype=np.float64)
+            free = np.where(np.isfinite(d) & (d > 0), np.minimum(d, cfg.depth_cap), cfg.depth_cap)
+            w = free.shape[-1]
+            img_left = free[:, :, : w // 2].mean(axis=(1, 2))  # image left = body +y (envs/camera/model.py)
+            img_right = free[:, :, w - w // 2 :].mean(axis=(1, 2))
+            r = state[f, ROT_COLUMNS].astype(np.float64)
+            psi = np.arctan2(r[:, 3], r[:, 0])
+            lat = -np.sin(psi) * left[first, 0] + np.cos(psi) * left[first, 1]  # +90 deg's heading-frame y
+            free_plus = np.where(lat >= 0, img_left, img_right)  # the image half the +90 deg side lies in
+            free_minus = np.where(lat >= 0, img_right, img_left)
+            side[first] = np.where(free_plus >= free_minus, 1.0, -1.0)
+        if bounds is not None:  # a side that runs into the volume's side within bounds_margin gives way
+            lo, hi = (np.broadcast_to(np.asarray(b, dtype=np.float64), (self.n, 2))[ids] for b in bounds)
+            room_plus = _room(pos[ids, :2], left, lo, hi)
+            room_minus = _room(pos[ids, :2], -left, lo, hi)
+            ok_plus, ok_minus = room_plus >= cfg.bounds_margin, room_minus >= cfg.bounds_margin
+            side = np.where(ok_plus & ~ok_minus, 1.0, np.where(ok_minus & ~ok_plus, -1.0, side))
+            neither = ~ok_plus & ~ok_minus
+            side[neither] = np.where(room_plus[neither] >= room_minus[neither], 1.0, -1.0)
+        self.side[ids] = side
+        self.direction[ids] = side[:, None] * left
+        self.until[ids] = now + cfg.hold_s + cfg.hold_growth_s * self.count[ids]
+        self.count[ids] += 1
+
+
+def _room(p: np.ndarray, e: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Distance (M,) from points ``p`` (M, 2) along unit directions ``e`` (M, 2) to a rectangle's boundary.
+
+    The rectangle is ``[lo, hi]``; a point outside it has 0, a zero direction inf.
+    """
+    lo, hi = np.broadcast_to(lo, p.shape), np.broadcast_to(hi, p.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(e > 1e-12, (hi - p) / e, np.where(e < -1e-12, (lo - p) / e, np.inf))
+    return np.maximum(t.min(axis=1), 0.0)

@@ -1,0 +1,163 @@
+"""The stall escape (shield_nav/escape.py): its timing, side choice and heading-frame goal input against hand-worked
+cases, bad input, and a real evaluation row that flies the shipped Full policy with it."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from envs.config import ConfigError
+from envs.navigation.env import STATE_DIM
+from shield_nav import evaluation as E
+from shield_nav.escape import GOAL_COLUMNS, ROT_COLUMNS, EscapeConfig, StallEscape
+
+DT = 0.01
+
+
+def _state(n, psi=0.0, goal_input=(0.7, 0.1)):
+    """A state batch whose rotation is a yaw of ``psi`` and whose goal input is ``goal_input``."""
+    s = np.zeros((n, STATE_DIM), dtype=np.float32)
+    c, si = math.cos(psi), math.sin(psi)
+    s[:, ROT_COLUMNS] = np.array([c, -si, 0.0, si, c, 0.0, 0.0, 0.0, 1.0], dtype=np.float32)
+    s[:, GOAL_COLUMNS] = goal_input
+    return s
+
+
+def _depth(n, left, right, h=6, w=10):
+    """Metric depth images whose left columns read ``left`` and right columns ``right``."""
+    d = np.empty((n, 1, h, w), dtype=np.float32)
+    d[..., : w // 2], d[..., w // 2 :] = left, right
+    return d
+
+
+def test_state_columns_are_the_layouts():
+    assert (GOAL_COLUMNS.start, GOAL_COLUMNS.stop) == (16, 18)  # vel 3 + R 9 + action 4
+    assert (ROT_COLUMNS.start, ROT_COLUMNS.stop) == (3, 12)
+
+
+def test_a_hovering_flight_escapes_after_the_window_then_on_the_other_side_for_longer():
+    """Goal 30 m ahead along +x, heading +x, the vehicle never moves; the image's left half is free (20 m, capped at
+    10), its right half 2 m away. First escape at t = window (5 s) to the left (+y: heading-frame input (0, 1)) for
+    4 s; the true input returns at 9 s; the next window ends at 14 s, then the right side (0, -1) for 6 s, to 20 s."""
+    esc = StallEscape(EscapeConfig(), 1, DT)
+    pos, goal = np.zeros((1, 3)), np.array([[30.0, 0.0, 0.0]])
+    state, depth = _state(1), _depth(1, 20.0, 2.0)
+    inputs, counts = [], []
+    for t in range(2200):
+        out = esc.apply(state, pos, goal, depth, t)
+        inputs.append(out[0, GOAL_COLUMNS].copy())
+        counts.append(esc.count[0])
+    inputs = np.array(inputs)
+    steps_of = lambda s: int(round(s / DT))  # noqa: E731
+    np.testing.assert_allclose(inputs[: steps_of(5.0)], [[0.7, 0.1]] * steps_of(5.0), rtol=1e-6)
+    np.testing.assert_allclose(inputs[steps_of(5.0) : steps_of(9.0)], [[0.0, 1.0]] * steps_of(4.0), atol=1e-7)
+    np.testing.assert_allclose(inputs[steps_of(9.0) : steps_of(14.0)], [[0.7, 0.1]] * steps_of(5.0), rtol=1e-6)
+    np.testing.assert_allclose(inputs[steps_of(14.0) : steps_of(20.0)], [[0.0, -1.0]] * steps_of(6.0), atol=1e-7)
+    np.testing.assert_allclose(inputs[steps_of(20.0) :], [[0.7, 0.1]] * (2200 - steps_of(20.0)), rtol=1e-6)
+    assert counts[steps_of(5.0) - 1] == 0 and counts[steps_of(5.0)] == 1 and counts[steps_of(14.0)] == 2
+    assert esc.escape_steps[0] == steps_of(4.0) + steps_of(6.0)
+
+
+def test_a_flight_closing_on_its_goal_never_escapes_and_reads_its_own_state():
+    """1 m of progress every 4 s (0.25 m/s) keeps a 5 s window from expiring; the state comes back unchanged."""
+    esc = StallEscape(EscapeConfig(), 2, DT)
+    goal = np.array([[100.0, 0.0, 1.0], [0.0, 100.0, 1.0]])
+    state, depth = _state(2), _depth(2, 5.0, 5.0)
+    for t in range(3000):
+        pos = np.array([[0.25 * t * DT, 0.0, 1.0], [0.0, 0.25 * t * DT, 1.0]])
+        assert esc.apply(state, pos, goal, depth, t) is state
+    assert esc.count.tolist() == [0, 0] and esc.escape_steps.tolist() == [0, 0]
+
+
+def test_the_side_follows_the_image_half_it_lies_in_and_the_input_is_in_the_heading_frame():
+    """Goal along +x. Vehicle 0 heads +x (psi 0): the +90 deg side (+y) is the image's left half; its right half is
+    free, so it escapes to -y, heading-frame input (0, -1). Vehicle 1 heads -x (psi pi): +y lies in the image's right
+    half, which is free, so it escapes to +y; in its heading frame +y is to the right: Rz(-pi) (0, 1) = (0, -1).
+    Vehicle 2 heads +y (psi pi/2): +y is straight ahead (heading-frame y = 0 counts as the left half, free there),
+    so it escapes to +y: input Rz(-pi/2) (0, 1) = (1, 0)."""
+    cfg = EscapeConfig(window_s=0.05)
+    esc = StallEscape(cfg, 3, DT)
+    state = np.concatenate([_state(1, 0.0), _state(1, math.pi), _state(1, math.pi / 2)])
+    depth = np.concatenate([_depth(1, 1.0, 30.0), _depth(1, 1.0, 30.0), _depth(1, 30.0, 1.0)])
+    pos, goal = np.zeros((3, 3)), np.tile([[40.0, 0.0, 2.0]], (3, 1))
+    for t in range(6):
+        out = esc.apply(state, pos, goal, depth, t)
+    assert esc.count.tolist() == [1, 1, 1]
+    np.testing.assert_allclose(esc.direction, [[0.0, -1.0], [0.0, 1.0], [0.0, 1.0]], atol=1e-12)
+    np.testing.assert_allclose(out[:, GOAL_COLUMNS], [[0.0, -1.0], [0.0, -1.0], [1.0, 0.0]], atol=1e-6)
+    # Everything but the goal input is the policy's own state.
+    keep = np.ones(STATE_DIM, bool)
+    keep[GOAL_COLUMNS] = False
+    np.testing.assert_array_equal(out[:, keep], state[:, keep])
+
+
+def test_the_flight_volume_turns_the_side_and_ends_the_hold():
+    """Volume x in [0, 60], y in [-16, 16]; goal along +x; heading +x; the image favours the left (+y) side.
+    Vehicle 0 at y = 12: +y has 4 m of room (< 10 m), -y 28 m: it escapes to -y. Vehicle 1 at y = 0: both sides
+    have 16 m: the image's choice (+y) stands. Without bounds_margin both take +y. Then vehicle 1 moves to y = 14.5
+    during its hold: 1.5 m of room ahead (< 2 m) ends the hold at once and the true goal input returns."""
+    lo, hi = np.array([0.0, -16.0]), np.array([60.0, 16.0])
+    state, depth = _state(2), _depth(2, 30.0, 1.0)
+    pos = np.array([[5.0, 12.0, 1.0], [5.0, 0.0, 1.0]])
+    goal = np.array([[55.0, 12.0, 1.0], [55.0, 0.0, 1.0]])
+    plain = StallEscape(EscapeConfig(window_s=0.05), 2, DT)
+    fenced = StallEscape(EscapeConfig(window_s=0.05, bounds_margin=10.0), 2, DT)
+    for t in range(6):
+        plain.apply(state, pos, goal, depth, t, bounds=(lo, hi))
+        out = fenced.apply(state, pos, goal, depth, t, bounds=(lo, hi))
+    np.testing.assert_allclose(plain.direction, [[0.0, 1.0], [0.0, 1.0]], atol=1e-12)
+    np.testing.assert_allclose(fenced.direction, [[0.0, -1.0], [0.0, 1.0]], atol=1e-12)
+    np.testing.assert_allclose(out[:, GOAL_COLUMNS], [[0.0, -1.0], [0.0, 1.0]], atol=1e-6)
+    pos[1, 1] = 14.5
+    out = fenced.apply(state, pos, goal, depth, 6, bounds=(lo, hi))
+    np.testing.assert_allclose(out[1, GOAL_COLUMNS], [0.7, 0.1], rtol=1e-6)  # the hold ended
+    np.testing.assert_allclose(out[0, GOAL_COLUMNS], [0.0, -1.0], atol=1e-6)  # vehicle 0 still escapes
+    assert fenced.until[1] == pytest.approx(0.06)
+    with pytest.raises(ValueError, match="bounds_margin > 0 needs the flight volume"):
+        StallEscape(EscapeConfig(bounds_margin=10.0), 1, DT).apply(_state(1), pos[:1], goal[:1], depth[:1], 0)
+
+
+def test_finished_flights_start_no_escape_and_bad_input_is_named():
+    esc = StallEscape(EscapeConfig(window_s=0.05), 2, DT)
+    state, depth = _state(2), _depth(2, 5.0, 5.0)
+    pos, goal = np.zeros((2, 3)), np.tile([[10.0, 0.0, 0.0]], (2, 1))
+    for t in range(10):
+        esc.apply(state, pos, goal, depth, t, live=np.array([True, False]))
+    assert esc.count.tolist() == [1, 0] and esc.escape_steps[1] == 0
+    with pytest.raises(ConfigError, match=r"escape\.window_s"):
+        StallEscape(EscapeConfig(window_s=0.0), 1, DT)
+    with pytest.raises(ConfigError, match=r"escape\.hold_growth_s"):
+        StallEscape(EscapeConfig(hold_growth_s=-1.0), 1, DT)
+    with pytest.raises(ConfigError, match=r"escape\.bounds_margin"):
+        StallEscape(EscapeConfig(bounds_margin=-1.0), 1, DT)
+    with pytest.raises(ConfigError, match=r"escape\.min_progress"):
+        StallEscape(EscapeConfig(min_progress=math.nan), 1, DT)
+    bad = _state(2)
+    bad[1, 0] = np.nan
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        StallEscape(EscapeConfig(), 2, DT).apply(bad, pos, goal, depth, 0)
+
+
+def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
+    """A window longer than any flight never fires: the flights are Full's, step for step. A window of 0.2 s with
+    1 km of progress asked fires in every flight at 0.2 s, and the flights differ. Only a depth policy may escape."""
+    base = ["scenes.family=ablation", "scenes.indices=[0]", "speeds=[9.0]", "trials_per_scene=2", "plots=false",
+            "network=fixed_order"]  # fmt: skip
+    cfg = E.load_eval_config(None, [*base, "configurations=[full,full_escape]", "escape.window_s=1000.0"])
+    runs = {s.row_name: E.run_unit(s)["trials"] for s in E.plan_units(E.prepare(cfg))}
+    plain, never = runs["full"], runs["full_escape"]
+    assert [t["steps"] for t in never] == [t["steps"] for t in plain]
+    assert [t["outcome"] for t in never] == [t["outcome"] for t in plain]
+    assert [t["traj"] for t in never] == [t["traj"] for t in plain]
+    assert all(t["escape"] == {"escapes": 0, "escape_steps": 0} for t in never)
+    cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=0.2",
+                                    "escape.min_progress=1000.0"])  # fmt: skip
+    (spec,) = E.plan_units(E.prepare(cfg))
+    fired = E.run_unit(dataclasses.replace(spec))["trials"]
+    assert all(t["escape"]["escapes"] >= 1 for t in fired)
+    for t, p in zip(fired, plain, strict=True):  # a point every 10 steps: the same up to 0.2 s, the first to
+        assert t["traj"][:3] == p["traj"][:3] and t["traj"][3] != p["traj"][3]  # see an escaped step differs
+    with pytest.raises(E.EvalError, match="has escape: true but controller 'oracle'"):
+        E.resolve_rows(E.load_eval_config(None, [*base, "configurations=[mine]", "rows.mine.controller=oracle",
+                                                 "rows.mine.escape=true"]))  # fmt: skip

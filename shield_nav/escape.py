@@ -25,8 +25,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
+from envs.camera.config import CameraConfig
+from envs.camera.pointcloud import depth_to_points
 from envs.config import require
+from envs.fields.geodesic import geodesic_field
 from envs.navigation.env import STATE_LAYOUT
 
 
@@ -44,6 +48,8 @@ GOAL_COLUMNS = _slice("goal_xy_h")
 """Columns of the heading-frame goal vector in the state (two)."""
 ROT_COLUMNS = _slice("R_wb")
 """Columns of the body-to-world rotation (row-major) in the state (nine)."""
+ESCAPE_KINDS = ("sideways", "map")
+"""Values of :attr:`EscapeConfig.kind`."""
 
 
 @dataclass
@@ -70,13 +76,38 @@ class EscapeConfig:
     its direction falls below ``bounds_stop``."""
     bounds_stop: float = 2.0
     """With ``bounds_margin`` > 0: the room [m] ahead to the bounds at which a hold ends early."""
+    kind: str = "sideways"
+    """``sideways``: the escape above. ``map``: from its first stall on, a flight follows a planner over the map of
+    what its camera has seen (see :class:`StallEscape`; needs the flight volume's bounds, the camera and R_wb)."""
+    map_cell: float = 0.2
+    """``map``: the occupancy grid's cell [m] (2D, over the flight volume's horizontal bounds)."""
+    map_range: float = 12.0
+    """``map``: image points farther than this [m] from the vehicle are not mapped."""
+    map_band: float = 0.6
+    """``map``: only points within this height [m] of the vehicle are mapped (and none below ``map_floor``)."""
+    map_floor: float = 0.3
+    """``map``: points lower than this [m] above the volume's floor are ground, not obstacles."""
+    map_inflate: float = 0.3
+    """``map``: mapped cells block the plan within this distance [m] (the vehicle's radius and a margin)."""
+    map_every: int = 5
+    """``map``: control steps between map updates."""
+    replan_s: float = 0.25
+    """``map``: seconds between plans of a guided flight."""
+    lookahead: float = 5.0
+    """``map``: the guided goal input points at the plan's path this far [m] from the vehicle."""
+    goal_radius: float = 5.0
+    """``map``: the plan's goal region, and within this distance of the goal the true goal input returns (the
+    env's ``episode.goal_radius``)."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
-        for key in ("window_s", "min_progress", "hold_s", "goal_distance", "depth_cap", "bounds_stop"):
+        require(self.kind in ESCAPE_KINDS, f"{prefix}kind", f"must be one of {list(ESCAPE_KINDS)}, got {self.kind!r}")
+        require(self.map_every >= 1, f"{prefix}map_every", f"must be >= 1, got {self.map_every}")
+        for key in ("window_s", "min_progress", "hold_s", "goal_distance", "depth_cap", "bounds_stop", "map_cell",
+                    "map_range", "map_band", "map_inflate", "replan_s", "lookahead", "goal_radius"):  # fmt: skip
             v = getattr(self, key)
             require(math.isfinite(v) and v > 0, f"{prefix}{key}", f"must be finite and > 0, got {v}")
-        for key in ("hold_growth_s", "bounds_margin"):
+        for key in ("hold_growth_s", "bounds_margin", "map_floor"):
             v = getattr(self, key)
             require(math.isfinite(v) and v >= 0, f"{prefix}{key}", f"must be finite and >= 0, got {v}")
 
@@ -88,9 +119,15 @@ class StallEscape:
     policy should read (a copy when any flight escapes). ``t`` counts control steps of ``dt`` seconds from the reset.
     """
 
-    def __init__(self, cfg: EscapeConfig, n: int, dt: float) -> None:  # noqa: D107
+    def __init__(self, cfg: EscapeConfig, n: int, dt: float, camera: CameraConfig | None = None) -> None:  # noqa: D107
         cfg.validate("escape.")
-        self.cfg, self.n, self.dt = cfg, n, dt
+        if cfg.kind == "map" and camera is None:
+            raise ValueError("stall escape: escape.kind 'map' needs the camera configuration")
+        self.cfg, self.n, self.dt, self.camera = cfg, n, dt, camera
+        self.grid: np.ndarray | None = None  # (n, nx, ny) bool, kind 'map': cells the camera has shown occupied
+        self.guided = np.zeros(n, dtype=bool)
+        self.next_plan = np.zeros(n)
+        self.target = np.full((n, 2), np.nan)
         self.best = np.full(n, np.inf)
         self.best_t = np.zeros(n)
         self.until = np.full(n, -np.inf)
@@ -108,6 +145,8 @@ class StallEscape:
         t: int,
         live: np.ndarray | None = None,
         bounds: tuple[np.ndarray, np.ndarray] | None = None,
+        R_wb: np.ndarray | None = None,  # noqa: N803
+        floor: float = 0.0,
     ) -> np.ndarray:
         """The policy's state (N, S) with the goal input of escaping flights replaced.
 
@@ -115,9 +154,12 @@ class StallEscape:
         vector is computed from); ``depth_m`` (N, 1, H, W) metric depth (0 or non-finite: no return, counted free);
         ``live`` (N,) bool: flights still flying (default all); a finished flight starts no escape and counts no
         escape step. ``bounds``: the flight volume's horizontal corners ``(lo, hi)``, each (2,) or (N, 2), in the
-        frame of ``pos`` (read with ``bounds_margin`` > 0, which then requires them).
+        frame of ``pos`` (read with ``bounds_margin`` > 0 or ``kind: map``, which then require them). ``R_wb``
+        (N, 3, 3) the body attitude of the image and ``floor`` the volume's floor height (``kind: map``).
         """
         cfg, now = self.cfg, t * self.dt
+        if cfg.kind == "map":
+            return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor)
         if cfg.bounds_margin > 0 and bounds is None:
             raise ValueError("stall escape: escape.bounds_margin > 0 needs the flight volume's bounds")
         use_bounds = bounds if cfg.bounds_margin > 0 else None
@@ -154,6 +196,102 @@ class StallEscape:
         out[i, GOAL_COLUMNS.start] = c * e[:, 0] + s * e[:, 1]  # Rz(-psi) e: unit length, i.e. >= 10 m away
         out[i, GOAL_COLUMNS.start + 1] = -s * e[:, 0] + c * e[:, 1]
         return out
+
+    def _apply_map(
+        self,
+        state: np.ndarray,
+        pos: np.ndarray,
+        goal: np.ndarray,
+        depth_m: np.ndarray,
+        t: int,
+        live: np.ndarray | None,
+        bounds: tuple[np.ndarray, np.ndarray] | None,
+        R_wb: np.ndarray | None,  # noqa: N803
+        floor: float,
+    ) -> np.ndarray:
+        """``kind: map``: map the image, detect stalls, and steer guided flights along their plan."""
+        cfg, now = self.cfg, t * self.dt
+        if bounds is None or R_wb is None:
+            raise ValueError("stall escape: escape.kind 'map' needs the flight volume's bounds and R_wb")
+        if not np.isfinite(state).all() or not np.isfinite(pos).all():
+            raise FloatingPointError("stall escape: non-finite state or position")
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(2) for b in bounds)
+        if self.grid is None:
+            shape = np.maximum(np.ceil((hi - lo) / cfg.map_cell).astype(int), 1)
+            self.grid = np.zeros((self.n, int(shape[0]), int(shape[1])), dtype=bool)
+            self.lo = lo
+        live = np.ones(self.n, dtype=bool) if live is None else np.asarray(live, dtype=bool)
+        if t % cfg.map_every == 0:
+            self._observe(np.flatnonzero(live), pos, R_wb, depth_m, floor)
+        dist = np.linalg.norm(goal - pos, axis=1)
+        gained = dist < self.best - cfg.min_progress
+        self.best = np.where(gained, dist, self.best)
+        self.best_t = np.where(gained, now, self.best_t)
+        stalled = live & ~self.guided & (now - self.best_t >= cfg.window_s)
+        self.guided |= stalled
+        self.count[stalled] = 1
+        due = np.flatnonzero(self.guided & live & (now >= self.next_plan))
+        for i in due:
+            self.target[i] = self._plan(i, pos[i], goal[i])
+            self.next_plan[i] = now + cfg.replan_s
+        steer = self.guided & live & np.isfinite(self.target[:, 0]) & (dist > 2.0 * cfg.goal_radius)
+        if not steer.any():
+            return state
+        self.escape_steps += steer
+        out = state.copy()
+        i = np.flatnonzero(steer)
+        e = self.target[i] - pos[i, :2]
+        e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-9)
+        r = state[i, ROT_COLUMNS].astype(np.float64)
+        psi = np.arctan2(r[:, 3], r[:, 0])
+        c, s = np.cos(psi), np.sin(psi)
+        out[i, GOAL_COLUMNS.start] = c * e[:, 0] + s * e[:, 1]  # a far goal along the plan
+        out[i, GOAL_COLUMNS.start + 1] = -s * e[:, 0] + c * e[:, 1]
+        return out
+
+    def _observe(self, ids: np.ndarray, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
+        """Mark the grid cells of each flight's image points near its height (kind ``map``)."""
+        cfg, grid = self.cfg, self.grid
+        assert grid is not None
+        nx, ny = grid.shape[1:]
+        for i in ids:
+            pts = depth_to_points(depth_m[i], pos[i], R_wb[i], self.camera)  # type: ignore[arg-type]
+            near = np.linalg.norm(pts[:, :2] - pos[i, :2], axis=1) <= cfg.map_range
+            band = (np.abs(pts[:, 2] - pos[i, 2]) <= cfg.map_band) & (pts[:, 2] >= floor + cfg.map_floor)
+            p = pts[near & band]
+            cx = np.floor((p[:, 0] - self.lo[0]) / cfg.map_cell).astype(np.int64)
+            cy = np.floor((p[:, 1] - self.lo[1]) / cfg.map_cell).astype(np.int64)
+            ok = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
+            grid[i, cx[ok], cy[ok]] = True
+
+    def _plan(self, i: int, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """The point (2,) ``lookahead`` along the plan over flight ``i``'s map, or NaN for the true goal input."""
+        cfg, grid = self.cfg, self.grid
+        assert grid is not None
+        occ = grid[i]
+        nx, ny = occ.shape
+        res = cfg.map_cell
+        centres_x = self.lo[0] + (np.arange(nx) + 0.5) * res
+        centres_y = self.lo[1] + (np.arange(ny) + 0.5) * res
+        free = ndimage.distance_transform_edt(~occ, sampling=res) > cfg.map_inflate if occ.any() else ~occ
+        to_goal = np.hypot(centres_x[:, None] - goal[0], centres_y[None, :] - goal[1]) <= cfg.goal_radius
+        if not (free & to_goal).any():
+            return np.full(2, np.nan)  # the mapped obstacles cover the goal region: fly the true goal
+        diag = float(np.hypot(nx * res, ny * res))
+        phi = geodesic_field(free[..., None], to_goal[..., None], res, diag)[0][..., 0]
+        a = int(np.clip(np.floor((pos[0] - self.lo[0]) / res), 0, nx - 1))  # the cells _observe marks
+        b = int(np.clip(np.floor((pos[1] - self.lo[1]) / res), 0, ny - 1))
+        for _ in range(int(round(cfg.lookahead / res))):
+            if to_goal[a, b]:
+                return np.full(2, np.nan)
+            a0, a1, b0, b1 = max(a - 1, 0), min(a + 2, nx), max(b - 1, 0), min(b + 2, ny)
+            steps = np.hypot(*np.meshgrid(np.arange(a0, a1) - a, np.arange(b0, b1) - b, indexing="ij"))
+            slope = (phi[a, b] - phi[a0:a1, b0:b1]) / np.maximum(steps, 1e-9)  # drop per cell length: a straight
+            k = int(np.argmax(slope))  # step beats a diagonal one of the same drop
+            if slope.flat[k] <= 0.0:
+                break  # a local minimum of the plan
+            a, b = a0 + k // slope.shape[1], b0 + k % slope.shape[1]
+        return np.array([centres_x[a], centres_y[b]])
 
     def _start(
         self,

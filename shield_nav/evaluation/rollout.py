@@ -173,7 +173,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
     shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
-    escape = StallEscape(cfg.escape, n, env.cfg.vehicle.command_dt) if row.escape else None
+    escape = StallEscape(cfg.escape, n, env.cfg.vehicle.command_dt, env.cfg.camera) if row.escape else None
     volume = (np.asarray(env.scenes[0].bounds_lo[:2]), np.asarray(env.scenes[0].bounds_hi[:2]))  # one scene per unit
     pick_hypotheses = shield is not None and policy is not None and shield.cfg.hypotheses != "top"
     ids = np.zeros(n, dtype=np.int64)
@@ -197,7 +197,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         live = end_step < 0
         alt_act = alt_cmd = None
         if escape is not None:  # the policy reads the escape's goal input while a flight escapes
-            state = escape.apply(obs["state"], env.local_pos, env.goal_buf, env.sensor_depth_buf, t, live, volume)
+            state = escape.apply(obs["state"], env.local_pos, env.goal_buf, env.sensor_depth_buf, t, live, volume,
+                                 env.vehicles.R_wb, float(env.scenes[0].bounds_lo[2]))  # fmt: skip
             obs = {**obs, "state": state}
         if policy is not None or teacher is not None:
             if policy is not None and pick_hypotheses:

@@ -118,6 +118,35 @@ def test_the_flight_volume_turns_the_side_and_ends_the_hold():
         StallEscape(EscapeConfig(bounds_margin=10.0), 1, DT).apply(_state(1), pos[:1], goal[:1], depth[:1], 0)
 
 
+def _guide(grid_m=(20.0, 10.0)):
+    """A map-kind escape over a 20 x 10 m volume with an empty map of 0.2 m cells (n = 1)."""
+    from envs.camera.config import CameraConfig
+
+    esc = StallEscape(EscapeConfig(kind="map", lookahead=3.0, map_inflate=0.4, goal_radius=1.0), 1, DT, CameraConfig())
+    nx, ny = int(grid_m[0] / 0.2), int(grid_m[1] / 0.2)
+    esc.grid, esc.lo = np.zeros((1, nx, ny), dtype=bool), np.zeros(2)
+    return esc
+
+
+def test_the_map_plan_goes_round_a_mapped_wall_through_its_gap():
+    """Vehicle at (2, 5.1), goal at (18, 5.1). Empty map: the plan's point lies straight ahead on y = 5, 3 m or a little
+    more away (15 grid steps). A mapped wall at x = 10 for y < 8 (the gap at y 8-10): the shortest way passes the
+    wall's end at (10, 8), inflated by 0.4 m, so the plan's point lies up and to the right of the vehicle, and the
+    straight segment to it stays clear of the wall. A goal region the map fills: NaN (fly the true goal)."""
+    pos, goal = np.array([2.0, 5.1, 1.5]), np.array([18.0, 5.1, 1.5])  # on the centre line of cell row 25
+    esc = _guide()
+    p = esc._plan(0, pos, goal)
+    assert p[1] == pytest.approx(5.1) and 3.0 <= p[0] - pos[0] <= 3.3
+    esc.grid[0, 50, :40] = True  # the cell column x in [10, 10.2), y in [0, 8)
+    p = esc._plan(0, pos, goal)
+    assert p[0] > pos[0] + 1.0 and p[1] > pos[1] + 1.0
+    angle = math.degrees(math.atan2(p[1] - pos[1], p[0] - pos[0]))
+    corner = math.degrees(math.atan2(8.4 - pos[1], 9.6 - pos[0]))  # the inflated wall's end, seen from the vehicle
+    assert angle >= corner - 12.0  # the segment aims at or above the wall's end (grid steps: 45 deg sectors)
+    esc.grid[0, 85:95, 20:30] = True  # 2 x 2 m of mapped obstacle over the 1 m goal region
+    assert np.isnan(esc._plan(0, pos, goal)).all()
+
+
 def test_finished_flights_start_no_escape_and_bad_input_is_named():
     esc = StallEscape(EscapeConfig(window_s=0.05), 2, DT)
     state, depth = _state(2), _depth(2, 5.0, 5.0)
@@ -131,6 +160,10 @@ def test_finished_flights_start_no_escape_and_bad_input_is_named():
         StallEscape(EscapeConfig(hold_growth_s=-1.0), 1, DT)
     with pytest.raises(ConfigError, match=r"escape\.bounds_margin"):
         StallEscape(EscapeConfig(bounds_margin=-1.0), 1, DT)
+    with pytest.raises(ConfigError, match=r"escape\.kind"):
+        StallEscape(EscapeConfig(kind="maps"), 1, DT)
+    with pytest.raises(ValueError, match="needs the camera"):
+        StallEscape(EscapeConfig(kind="map"), 1, DT)
     with pytest.raises(ConfigError, match=r"escape\.min_progress"):
         StallEscape(EscapeConfig(min_progress=math.nan), 1, DT)
     bad = _state(2)
@@ -151,6 +184,10 @@ def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
     assert [t["outcome"] for t in never] == [t["outcome"] for t in plain]
     assert [t["traj"] for t in never] == [t["traj"] for t in plain]
     assert all(t["escape"] == {"escapes": 0, "escape_steps": 0} for t in never)
+    cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=1000.0", "escape.kind=map"])
+    (spec,) = E.plan_units(E.prepare(cfg))
+    mapped = E.run_unit(spec)["trials"]  # the map is built all flight long; it steers nothing until a stall
+    assert [t["traj"] for t in mapped] == [t["traj"] for t in plain]
     cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=0.2",
                                     "escape.min_progress=1000.0"])  # fmt: skip
     (spec,) = E.plan_units(E.prepare(cfg))

@@ -14,6 +14,12 @@ nothing the policy does not already read (its own position and heading estimate,
   holds ``hold_growth_s`` longer.
 - After the hold the true goal input returns, and the best distance starts afresh from the current one.
 
+With ``kind: map`` the response to a stall is a plan instead: every flight maps what its camera shows (a 2D
+occupancy grid over the flight volume, the image's points near the vehicle's height), and from its first stall on,
+every ``replan_s`` a Dijkstra from the goal over that map (mapped cells inflated by ``map_inflate``, unknown cells
+free: the optimistic planning of classical explorers) gives the way; the goal input points at the way's cell about
+``lookahead`` metres on (steepest descent), until the goal is within ``2 goal_radius``.
+
 The shield, the success test and the time limit are untouched: the layer only changes which way the policy is asked
 to fly, and only in flights that are not closing on their goal. Vectorised over the batch; no per-env Python loop.
 Its measured effect is in docs/shield.md ("Stall escape") and the lab log (2026-12-03, session 77).

@@ -164,18 +164,19 @@ class StallEscape:
         (N, 3, 3) the body attitude of the image and ``floor`` the volume's floor height (``kind: map``).
         """
         cfg, now = self.cfg, t * self.dt
+        if not np.isfinite(state).all() or not np.isfinite(pos).all():
+            raise FloatingPointError("stall escape: non-finite state or position")
+        live = np.ones(self.n, dtype=bool) if live is None else np.asarray(live, dtype=bool)
+        dist = np.linalg.norm(goal - pos, axis=1)
+        gained = dist < self.best - cfg.min_progress  # the stall clock of both kinds
+        self.best = np.where(gained, dist, self.best)
+        self.best_t = np.where(gained, now, self.best_t)
         if cfg.kind == "map":
-            return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor)
+            return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor, dist)
         if cfg.bounds_margin > 0 and bounds is None:
             raise ValueError("stall escape: escape.bounds_margin > 0 needs the flight volume's bounds")
         use_bounds = bounds if cfg.bounds_margin > 0 else None
-        if not np.isfinite(state).all() or not np.isfinite(pos).all():
-            raise FloatingPointError("stall escape: non-finite state or position")
         to_goal = goal[:, :2] - pos[:, :2]
-        dist = np.linalg.norm(goal - pos, axis=1)
-        gained = dist < self.best - cfg.min_progress
-        self.best = np.where(gained, dist, self.best)
-        self.best_t = np.where(gained, now, self.best_t)
         escaping = now < self.until
         if use_bounds is not None and escaping.any():  # a hold ends where the volume's side comes near
             room = _room(pos[:, :2], self.direction, *use_bounds)
@@ -185,7 +186,6 @@ class StallEscape:
         ended = ~escaping & (self.best_t < self.until)  # a hold is over: a fresh window from the current distance
         self.best = np.where(ended, dist, self.best)
         self.best_t = np.where(ended, now, self.best_t)
-        live = np.ones(self.n, dtype=bool) if live is None else np.asarray(live, dtype=bool)
         stalled = live & ~escaping & (now - self.best_t >= cfg.window_s)
         if stalled.any():
             self._start(np.flatnonzero(stalled), to_goal, state, depth_m, now, pos, use_bounds)
@@ -193,15 +193,8 @@ class StallEscape:
         if not escaping.any():
             return state
         self.escape_steps += escaping & live
-        out = state.copy()
         i = np.flatnonzero(escaping)
-        r = state[i, ROT_COLUMNS].astype(np.float64)  # row-major R_wb: r[0] = R00, r[3] = R10
-        psi = np.arctan2(r[:, 3], r[:, 0])
-        c, s = np.cos(psi), np.sin(psi)
-        e = self.direction[i]
-        out[i, GOAL_COLUMNS.start] = c * e[:, 0] + s * e[:, 1]  # Rz(-psi) e: unit length, i.e. >= 10 m away
-        out[i, GOAL_COLUMNS.start + 1] = -s * e[:, 0] + c * e[:, 1]
-        return out
+        return _with_goal_direction(state, i, self.direction[i])
 
     def _apply_map(
         self,
@@ -210,29 +203,23 @@ class StallEscape:
         goal: np.ndarray,
         depth_m: np.ndarray,
         t: int,
-        live: np.ndarray | None,
+        live: np.ndarray,
         bounds: tuple[np.ndarray, np.ndarray] | None,
         R_wb: np.ndarray | None,  # noqa: N803
         floor: float,
+        dist: np.ndarray,
     ) -> np.ndarray:
         """``kind: map``: map the image, detect stalls, and steer guided flights along their plan."""
         cfg, now = self.cfg, t * self.dt
         if bounds is None or R_wb is None:
             raise ValueError("stall escape: escape.kind 'map' needs the flight volume's bounds and R_wb")
-        if not np.isfinite(state).all() or not np.isfinite(pos).all():
-            raise FloatingPointError("stall escape: non-finite state or position")
         lo, hi = (np.asarray(b, dtype=np.float64).reshape(2) for b in bounds)
         if self.grid is None:
             shape = np.maximum(np.ceil((hi - lo) / cfg.map_cell).astype(int), 1)
             self.grid = np.zeros((self.n, int(shape[0]), int(shape[1])), dtype=bool)
             self.lo = lo
-        live = np.ones(self.n, dtype=bool) if live is None else np.asarray(live, dtype=bool)
         if t % cfg.map_every == 0:
             self._observe(np.flatnonzero(live), pos, R_wb, depth_m, floor)
-        dist = np.linalg.norm(goal - pos, axis=1)
-        gained = dist < self.best - cfg.min_progress
-        self.best = np.where(gained, dist, self.best)
-        self.best_t = np.where(gained, now, self.best_t)
         stalled = live & ~self.guided & (now - self.best_t >= cfg.window_s)
         self.guided |= stalled
         self.count[stalled] = 1
@@ -244,16 +231,9 @@ class StallEscape:
         if not steer.any():
             return state
         self.escape_steps += steer
-        out = state.copy()
         i = np.flatnonzero(steer)
         e = self.target[i] - pos[i, :2]
-        e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-9)
-        r = state[i, ROT_COLUMNS].astype(np.float64)
-        psi = np.arctan2(r[:, 3], r[:, 0])
-        c, s = np.cos(psi), np.sin(psi)
-        out[i, GOAL_COLUMNS.start] = c * e[:, 0] + s * e[:, 1]  # a far goal along the plan
-        out[i, GOAL_COLUMNS.start + 1] = -s * e[:, 0] + c * e[:, 1]
-        return out
+        return _with_goal_direction(state, i, e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-9))
 
     def _observe(self, ids: np.ndarray, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
         """Mark the grid cells of each flight's image points near its height (kind ``map``)."""
@@ -324,8 +304,7 @@ class StallEscape:
             w = free.shape[-1]
             img_left = free[:, :, : w // 2].mean(axis=(1, 2))  # image left = body +y (envs/camera/model.py)
             img_right = free[:, :, w - w // 2 :].mean(axis=(1, 2))
-            r = state[f, ROT_COLUMNS].astype(np.float64)
-            psi = np.arctan2(r[:, 3], r[:, 0])
+            psi = _heading(state[f])
             lat = -np.sin(psi) * left[first, 0] + np.cos(psi) * left[first, 1]  # +90 deg's heading-frame y
             free_plus = np.where(lat >= 0, img_left, img_right)  # the image half the +90 deg side lies in
             free_minus = np.where(lat >= 0, img_right, img_left)
@@ -342,6 +321,25 @@ class StallEscape:
         self.direction[ids] = side[:, None] * left
         self.until[ids] = now + cfg.hold_s + cfg.hold_growth_s * self.count[ids]
         self.count[ids] += 1
+
+
+def _heading(state: np.ndarray) -> np.ndarray:
+    """Yaw (M,) of states (M, S) from their row-major R_wb columns (R10 and R00)."""
+    r = state[:, ROT_COLUMNS].astype(np.float64)
+    return np.arctan2(r[:, 3], r[:, 0])
+
+
+def _with_goal_direction(state: np.ndarray, i: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """A copy of ``state`` whose rows ``i`` read a far goal along world unit directions ``e`` (M, 2).
+
+    The goal input is the heading-frame offset over max(|offset|, 10 m): a unit vector, Rz(-psi) e.
+    """
+    out = state.copy()
+    psi = _heading(state[i])
+    c, s = np.cos(psi), np.sin(psi)
+    out[i, GOAL_COLUMNS.start] = c * e[:, 0] + s * e[:, 1]
+    out[i, GOAL_COLUMNS.start + 1] = -s * e[:, 0] + c * e[:, 1]
+    return out
 
 
 def _room(p: np.ndarray, e: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

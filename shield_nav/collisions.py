@@ -28,7 +28,14 @@ shield acting.
 ``--timeouts`` asks about the flights that ran out of time instead: did each one stall (no metre of closing on the
 goal in its last 5 s: circling or hovering in a pocket), or was it still on its way (too slow)? It reports, per row
 and speed, the stalled count, when the stalled flights last closed in and how far they were left, and the closing
-flights' distance left and closing speed (:func:`timeouts`; the stall rule is :class:`shield_nav.escape.StallEscape`'s).
+flights' distance left and closing speed (:func:`timeouts`; the stall rule is :class:`shield_nav.escape.StallEscape`'s),
+and how many of them circled (below).
+
+``--circling`` asks of every flight, whatever its outcome, whether it flew in circles: whether its heading turned
+through :data:`CIRCLE_TURNS` full turns or more, net, within some :data:`CIRCLE_WINDOW_S` of the flight
+(:func:`max_turns`; outputs with the heading column). A flight that orbits a pocket turns its camera round and round
+in one direction; one that threads clutter turns left and right, and its net rotation stays small. Per row and speed
+it counts the circling flights by outcome (:func:`circling`).
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import math
 import os
 from collections import Counter, defaultdict
 from collections.abc import Iterator
@@ -53,6 +61,12 @@ MAX_HIT_DISTANCE = 0.6
 """A nearest surface farther than this (m) from the final position is ``unresolved``."""
 YAW_WINDOW_S = 0.5
 """The window [s] before a crash over which :func:`yaw_rate_before` averages the yaw rate."""
+CIRCLE_WINDOW_S = 10.0
+"""The window [s] within which :func:`circling` looks for a flight's net heading rotation."""
+CIRCLE_TURNS = 1.5
+"""Net heading rotation [full turns] within :data:`CIRCLE_WINDOW_S` from which a flight counts as circling."""
+OUTCOMES = ("success", "collision", "timeout", "out_of_bounds")
+"""A trial's outcomes, in the order :func:`format_circling` lists them."""
 
 
 def primitive_class(prim: Primitive) -> str:
@@ -176,6 +190,30 @@ def shield_share_before(traj: np.ndarray, times: np.ndarray, window_s: float = Y
     return float(np.sum(tr[k, 5] * w) / np.sum(w)) if len(k) and np.sum(w) > 0 else None
 
 
+def max_turns(traj: np.ndarray, times: np.ndarray, window_s: float = CIRCLE_WINDOW_S) -> float | None:
+    """The largest net rotation [full turns] of a flight's heading across ``window_s`` of it.
+
+    ``traj`` is ``(T, >= 5)`` (x, y, z, speed, heading [rad]), ``times`` its points' times [s]. The heading is
+    unwrapped (each change between recorded points taken in (-pi, pi]: at a point every 0.1 s that holds below
+    1,800 deg/s) and every point's is compared with the last point's at most ``window_s`` later (a point within
+    ``window_s`` of the flight's end: with the end). Turning left then right cancels; orbiting adds up. ``None``
+    for fewer than two points or without the heading column.
+    """
+    tr, t = np.asarray(traj, dtype=np.float64), np.asarray(times, dtype=np.float64)
+    if tr.ndim != 2 or t.shape != (len(tr),):
+        raise ValueError(f"need a trajectory (T, C) with T times, got shapes {tr.shape} and {t.shape}")
+    if not (math.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"window_s must be finite and > 0, got {window_s}")
+    if tr.shape[1] < 5 or len(tr) < 2:
+        return None
+    if not np.all(np.isfinite(tr[:, 4])):
+        raise ValueError("the heading column holds a non-finite value")
+    dh = (np.diff(tr[:, 4]) + np.pi) % (2.0 * np.pi) - np.pi
+    h = np.concatenate(([0.0], np.cumsum(dh)))
+    j = np.searchsorted(t, t + window_s + 1e-9, side="right") - 1  # the last point within the window
+    return float(np.max(np.abs(h[j] - h)) / (2.0 * np.pi))
+
+
 def point_times(steps: int, every: int, dt: float) -> np.ndarray:
     """Times [s] of a trial's recorded trajectory points: every ``every``-th control step of ``dt`` and the last."""
     keep = list(range(0, steps + 1, every)) + ([steps] if steps % every else [])
@@ -183,12 +221,14 @@ def point_times(steps: int, every: int, dt: float) -> np.ndarray:
 
 
 def _crashes(
-    out_dir: str, rows: list[str] | None, speeds: list[float] | None, outcome: str = "collision"
-) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray], list[np.ndarray]]]:
-    """Per unit of an eval folder: ``(row, speed)``, its scene, the crashed trajectories and their points' times.
+    out_dir: str, rows: list[str] | None, speeds: list[float] | None, outcome: str | None = "collision"
+) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray], list[np.ndarray], list[str]]]:
+    """Per unit of an eval folder: ``(row, speed)``, its scene, the picked trajectories, times and outcomes.
 
-    The scene is ``None`` without crashes (and for any ``outcome`` but ``collision``: the time-out breakdown needs
-    none); the times [s] come from :func:`point_times`. ``outcome`` picks the trials (``collision``, ``timeout``).
+    The scene is ``None`` without crashes (and for any ``outcome`` but ``collision``: the other breakdowns need
+    none); the times [s] come from :func:`point_times`. ``outcome`` picks the trials (``collision``, ``timeout``;
+    ``None``: every trial). Except for collisions, the goal rides along as each trajectory's last row (its x, y, z;
+    NaN in the other columns).
     """
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
     cfg = None
@@ -203,7 +243,7 @@ def _crashes(
             unit = json.load(fh)
         if (rows and unit["row"] not in rows) or (speeds and float(unit["speed"]) not in speeds):
             continue
-        hits = [t for t in unit["trials"] if t["outcome"] == outcome]
+        hits = [t for t in unit["trials"] if outcome is None or t["outcome"] == outcome]
         for t in hits:
             if not t.get("traj"):
                 raise ValueError(f"{path}: trial {t.get('trial')} has no trajectory (trajectory_every too large?)")
@@ -226,9 +266,12 @@ def _crashes(
             every, dt = EvalConfig().trajectory_every, VehicleConfig().command_dt
         trajs = [np.asarray(t["traj"]) for t in hits]
         if outcome != "collision":  # the goal rides along as the trajectory's last row (read by timeouts())
-            goals = [np.asarray(t["goal"], dtype=np.float64)[None] for t in hits]
-            trajs = [np.vstack((tr[:, :3], g)) for tr, g in zip(trajs, goals, strict=True)]
-        yield (unit["row"], float(unit["speed"])), scene, trajs, [point_times(int(t["steps"]), every, dt) for t in hits]
+            goals = [np.asarray(t["goal"], dtype=np.float64)[:3] for t in hits]
+            trajs = [
+                np.vstack((tr, np.r_[g, np.full(tr.shape[1] - 3, np.nan)])) for tr, g in zip(trajs, goals, strict=True)
+            ]
+        times = [point_times(int(t["steps"]), every, dt) for t in hits]
+        yield (unit["row"], float(unit["speed"])), scene, trajs, times, [t["outcome"] for t in hits]
 
 
 def last_progress(times: np.ndarray, dist: np.ndarray, min_progress: float) -> float:
@@ -257,19 +300,23 @@ def timeouts(
     Per (row, speed): ``n`` time-outs, ``stalled``, the median time the stalled flights last made progress
     (``stalled_since_s``, from the start) and their median distance left to the goal (``stalled_left_m``), the closing
     flights' median distance left (``closing_left_m``) and median closing speed over the last window
-    (``closing_m_s``). Distances are straight-line, from the recorded trajectory points.
+    (``closing_m_s``), and ``circling``: the time-outs that flew in circles somewhere in the flight
+    (:func:`max_turns` at least :data:`CIRCLE_TURNS`; ``None`` for outputs without the heading column). Distances
+    are straight-line, from the recorded trajectory points.
     """
     out: dict[tuple[str, float], dict] = {}
-    raw: dict[tuple[str, float], list[tuple[bool, float, float, float]]] = defaultdict(list)
-    for key, _, trajs, times in _crashes(out_dir, rows, speeds, outcome="timeout"):
+    raw: dict[tuple[str, float], list[tuple[bool, float, float, float, bool | None]]] = defaultdict(list)
+    for key, _, trajs, times, _ in _crashes(out_dir, rows, speeds, outcome="timeout"):
         raw[key]  # noqa: B018  (rows without time-outs still appear)
         for tr, tm in zip(trajs, times, strict=True):
-            dist = np.linalg.norm(tr[:-1] - tr[-1], axis=1)
+            dist = np.linalg.norm(tr[:-1, :3] - tr[-1, :3], axis=1)
             since = last_progress(tm, dist, min_progress)
             stalled = tm[-1] - since >= window_s
             k = int(np.searchsorted(tm, tm[-1] - window_s))
             rate = (dist[k] - dist[-1]) / max(tm[-1] - tm[k], 1e-9)
-            raw[key].append((bool(stalled), since, float(dist[-1]), float(rate)))
+            turns = max_turns(tr[:-1], tm)
+            raw[key].append((bool(stalled), since, float(dist[-1]), float(rate),
+                             None if turns is None else turns >= CIRCLE_TURNS))  # fmt: skip
 
     def med(x: list[float]) -> float | None:
         return float(np.median(x)) if x else None
@@ -279,7 +326,9 @@ def timeouts(
         cl = [i for i in items if not i[0]]
         out[key] = {"n": len(items), "stalled": len(st), "stalled_since_s": med([i[1] for i in st]),
                     "stalled_left_m": med([i[2] for i in st]), "closing_left_m": med([i[2] for i in cl]),
-                    "closing_m_s": med([i[3] for i in cl])}  # fmt: skip
+                    "closing_m_s": med([i[3] for i in cl]),
+                    "circling": None if any(i[4] is None for i in items) else sum(bool(i[4]) for i in items),
+                    }  # fmt: skip
     return out
 
 
@@ -290,10 +339,57 @@ def format_timeouts(result: dict[tuple[str, float], dict]) -> str:
         return "-" if x is None else f"{x:.1f}"
 
     lines = ["| row | speed | time-outs | stalled | stalled since [s] | stalled: left [m] | closing: left [m] | "
-             "closing [m/s] |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             "closing [m/s] | circling |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for (row, speed), v in sorted(result.items()):
         cols = [v["stalled_since_s"], v["stalled_left_m"], v["closing_left_m"], v["closing_m_s"]]
-        lines.append(f"| {row} | {speed:g} | {v['n']} | {v['stalled']} | " + " | ".join(map(num, cols)) + " |")
+        circ = "-" if v["circling"] is None else str(v["circling"])
+        lines.append(
+            f"| {row} | {speed:g} | {v['n']} | {v['stalled']} | " + " | ".join(map(num, cols)) + f" | {circ} |"
+        )
+    return "\n".join(lines)
+
+
+def circling(
+    out_dir: str,
+    rows: list[str] | None = None,
+    speeds: list[float] | None = None,
+    window_s: float = CIRCLE_WINDOW_S,
+    turns: float = CIRCLE_TURNS,
+) -> dict[tuple[str, float], dict[str, list[int]]]:
+    """(row, speed) -> outcome -> ``[flights, circling]``: how many flights of each outcome flew in circles.
+
+    A flight circles when its heading turned ``turns`` full turns or more, net, within some ``window_s`` of it
+    (:func:`max_turns`). Every outcome of :data:`OUTCOMES` is listed, with zeros where none was flown.
+
+    Raises:
+        ValueError: A trajectory lacks the heading column (outputs written before 2026-11-28), or ``turns`` is not
+            positive.
+    """
+    if not (math.isfinite(turns) and turns > 0):
+        raise ValueError(f"turns must be finite and > 0, got {turns}")
+    out: dict[tuple[str, float], dict[str, list[int]]] = {}
+    for key, _, trajs, times, outcomes in _crashes(out_dir, rows, speeds, outcome=None):
+        cell = out.setdefault(key, {o: [0, 0] for o in OUTCOMES})
+        for tr, tm, oc in zip(trajs, times, outcomes, strict=True):
+            if tr.shape[1] < 5:
+                raise ValueError(f"{out_dir}: row {key[0]!r} at {key[1]:g} m/s has no heading column; "
+                                 "--circling needs an output written since 2026-11-28")  # fmt: skip
+            got = max_turns(tr[:-1], tm, window_s)
+            c = cell.setdefault(oc, [0, 0])
+            c[0] += 1
+            c[1] += int(got is not None and got >= turns)
+    return out
+
+
+def format_circling(result: dict[tuple[str, float], dict[str, list[int]]]) -> str:
+    """Markdown table of :func:`circling`: circling flights / flights, per outcome."""
+    lines = ["| row | speed | flights | circling | " + " | ".join(o.replace("_", " ") for o in OUTCOMES) + " |",
+             "|---|---:|---:|---:|" + "---:|" * len(OUTCOMES)]  # fmt: skip
+    for (row, speed), v in sorted(result.items()):
+        n = sum(c[0] for c in v.values())
+        k = sum(c[1] for c in v.values())
+        cols = [f"{v[o][1]} / {v[o][0]}" for o in OUTCOMES]
+        lines.append(f"| {row} | {speed:g} | {n} | {k} | " + " | ".join(cols) + " |")
     return "\n".join(lines)
 
 
@@ -302,7 +398,7 @@ def breakdown(
 ) -> dict[tuple[str, float], Counter]:
     """(row, speed) -> Counter of hit classes over the collided trials of an eval output folder."""
     out: dict[tuple[str, float], Counter] = defaultdict(Counter)
-    for key, scene, trajs, _ in _crashes(out_dir, rows, speeds):
+    for key, scene, trajs, _, _ in _crashes(out_dir, rows, speeds):
         out[key].update()  # rows without collisions still appear
         for tr in trajs:
             out[key][classify_hit(scene, tr[-1, :3])[0]] += 1
@@ -329,7 +425,7 @@ def bearings(
     blind: dict[tuple[str, float], list] = defaultdict(list)
     rates: dict[tuple[str, float], list] = defaultdict(list)
     acting: dict[tuple[str, float], list] = defaultdict(list)
-    for key, scene, trajs, times in _crashes(out_dir, rows, speeds):
+    for key, scene, trajs, times, _ in _crashes(out_dir, rows, speeds):
         found[key] += []
         for tr, tt in zip(trajs, times, strict=True):
             cls, deg = approach_bearing(scene, tr)
@@ -413,6 +509,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--bearing", action="store_true", help="approach bearings (in view or beside) instead of classes")
     ap.add_argument("--timeouts", action="store_true",
                     help="how the time-outs end (stalled or still closing) instead of the collisions")  # fmt: skip
+    ap.add_argument("--circling", action="store_true",
+                    help="which flights flew in circles (net heading turns in a window), by outcome")  # fmt: skip
     ap.add_argument("--hfov", type=float, default=CameraConfig().hfov_deg,
                     help="camera horizontal field of view, deg (default: the camera's)")  # fmt: skip
     a = ap.parse_args(argv)
@@ -423,8 +521,15 @@ def main(argv: list[str] | None = None) -> None:
         speeds = [float(s) for s in a.speeds.split(",") if s] or None
     except ValueError:
         ap.error(f"--speeds must be numbers, got {a.speeds!r}")
-    if a.timeouts and a.bearing:
-        ap.error("--timeouts and --bearing ask different questions; give one")
+    if a.timeouts + a.bearing + a.circling > 1:
+        ap.error("--timeouts, --bearing and --circling ask different questions; give one")
+    if a.circling:
+        res_c = circling(a.out_dir, rows, speeds)
+        if a.json:
+            print(json.dumps([{"row": r, "speed": sp, "by_outcome": v} for (r, sp), v in sorted(res_c.items())]))
+        else:
+            print(format_circling(res_c))
+        return
     if a.timeouts:
         res = timeouts(a.out_dir, rows, speeds)
         if a.json:

@@ -13,6 +13,10 @@ nothing the policy does not already read (its own position and heading estimate,
   range (each column's mean of ``min(depth, depth_cap)``); each later escape of the flight takes the other side and
   holds ``hold_growth_s`` longer.
 - After the hold the true goal input returns, and the best distance starts afresh from the current one.
+- **Circling** (``circle_turns`` > 0, off by default): a flight also counts as stalled when its heading, read from
+  the state's attitude, has turned ``circle_turns`` full turns or more, net, over the last ``circle_window_s``
+  seconds (or since its start, if younger): a flight orbiting a pocket, which the distance rule sees only after
+  ``window_s`` without progress. Its heading history restarts when its escape starts.
 
 With ``kind: map`` the response to a stall is a plan instead: every flight maps what its camera shows (a 2D
 occupancy grid over the flight volume, the image's points near the vehicle's height), and from its first stall on,
@@ -82,6 +86,11 @@ class EscapeConfig:
     its direction falls below ``bounds_stop``."""
     bounds_stop: float = 2.0
     """With ``bounds_margin`` > 0: the room [m] ahead to the bounds at which a hold ends early."""
+    circle_turns: float = 0.0
+    """0: off. If > 0, a flight whose heading turned this many full turns, net, over the last ``circle_window_s``
+    also counts as stalled (either kind; see the module docstring)."""
+    circle_window_s: float = 6.0
+    """With ``circle_turns`` > 0: the window [s] of the net heading rotation."""
     kind: str = "sideways"
     """``sideways``: the escape above. ``map``: from its first stall on, a flight follows a planner over the map of
     what its camera has seen (see :class:`StallEscape`; needs the flight volume's bounds, the camera and R_wb)."""
@@ -110,10 +119,11 @@ class EscapeConfig:
         require(self.kind in ESCAPE_KINDS, f"{prefix}kind", f"must be one of {list(ESCAPE_KINDS)}, got {self.kind!r}")
         require(self.map_every >= 1, f"{prefix}map_every", f"must be >= 1, got {self.map_every}")
         for key in ("window_s", "min_progress", "hold_s", "goal_distance", "depth_cap", "bounds_stop", "map_cell",
-                    "map_range", "map_band", "map_inflate", "replan_s", "lookahead", "goal_radius"):  # fmt: skip
+                    "map_range", "map_band", "map_inflate", "replan_s", "lookahead", "goal_radius",
+                    "circle_window_s"):  # fmt: skip
             v = getattr(self, key)
             require(math.isfinite(v) and v > 0, f"{prefix}{key}", f"must be finite and > 0, got {v}")
-        for key in ("hold_growth_s", "bounds_margin", "map_floor"):
+        for key in ("hold_growth_s", "bounds_margin", "map_floor", "circle_turns"):
             v = getattr(self, key)
             require(math.isfinite(v) and v >= 0, f"{prefix}{key}", f"must be finite and >= 0, got {v}")
 
@@ -141,6 +151,14 @@ class StallEscape:
         self.count = np.zeros(n, dtype=np.int64)
         self.side = np.zeros(n)
         self.escape_steps = np.zeros(n, dtype=np.int64)
+        self.circled = np.zeros(n, dtype=np.int64)  # escapes started by the circling rule
+        k = max(int(round(cfg.circle_window_s / dt)), 1)
+        self.turned = np.zeros(n)  # unwrapped heading change since the reset [rad]
+        self.turned_hist = np.zeros((k, n))  # ring buffer of ``turned`` over the last k steps
+        self.turned_from = np.zeros(n)  # ``turned`` at a flight's start or its latest escape
+        self.escape_t = np.full(n, -1, dtype=np.int64)  # step of a flight's latest escape start (-1: none)
+        self.psi_prev: np.ndarray | None = None
+        self.last_t = -1
 
     def apply(
         self,
@@ -171,8 +189,9 @@ class StallEscape:
         gained = dist < self.best - cfg.min_progress  # the stall clock of both kinds
         self.best = np.where(gained, dist, self.best)
         self.best_t = np.where(gained, now, self.best_t)
+        circling = self._circling(state, t)
         if cfg.kind == "map":
-            return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor, dist)
+            return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor, dist, circling)
         if cfg.bounds_margin > 0 and bounds is None:
             raise ValueError("stall escape: escape.bounds_margin > 0 needs the flight volume's bounds")
         use_bounds = bounds if cfg.bounds_margin > 0 else None
@@ -186,8 +205,9 @@ class StallEscape:
         ended = ~escaping & (self.best_t < self.until)  # a hold is over: a fresh window from the current distance
         self.best = np.where(ended, dist, self.best)
         self.best_t = np.where(ended, now, self.best_t)
-        stalled = live & ~escaping & (now - self.best_t >= cfg.window_s)
+        stalled = live & ~escaping & ((now - self.best_t >= cfg.window_s) | circling)
         if stalled.any():
+            self._count_circling(stalled, circling & (now - self.best_t < cfg.window_s), t)
             self._start(np.flatnonzero(stalled), to_goal, state, depth_m, now, pos, use_bounds)
             escaping = now < self.until
         if not escaping.any():
@@ -208,6 +228,7 @@ class StallEscape:
         R_wb: np.ndarray | None,  # noqa: N803
         floor: float,
         dist: np.ndarray,
+        circling: np.ndarray,
     ) -> np.ndarray:
         """``kind: map``: map the image, detect stalls, and steer guided flights along their plan."""
         cfg, now = self.cfg, t * self.dt
@@ -220,7 +241,8 @@ class StallEscape:
             self.lo = lo
         if t % cfg.map_every == 0:
             self._observe(np.flatnonzero(live), pos, R_wb, depth_m, floor)
-        stalled = live & ~self.guided & (now - self.best_t >= cfg.window_s)
+        stalled = live & ~self.guided & ((now - self.best_t >= cfg.window_s) | circling)
+        self._count_circling(stalled, circling & (now - self.best_t < cfg.window_s), t)
         self.guided |= stalled
         self.count[stalled] = 1
         due = np.flatnonzero(self.guided & live & (now >= self.next_plan))
@@ -234,6 +256,36 @@ class StallEscape:
         i = np.flatnonzero(steer)
         e = self.target[i] - pos[i, :2]
         return _with_goal_direction(state, i, e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-9))
+
+    def _circling(self, state: np.ndarray, t: int) -> np.ndarray:
+        """(N,) bool: flights whose heading turned ``circle_turns`` or more, net, over the last ``circle_window_s``.
+
+        All False with ``circle_turns`` 0. The heading history needs one call per control step: a skipped or
+        repeated ``t`` raises.
+        """
+        cfg = self.cfg
+        if cfg.circle_turns <= 0:
+            return np.zeros(self.n, dtype=bool)
+        if t != self.last_t + 1:
+            raise ValueError(f"stall escape: the circling rule needs one call per control step, got t = {t} after "
+                             f"{self.last_t}")  # fmt: skip
+        self.last_t = t
+        psi = _heading(state)
+        if self.psi_prev is not None:
+            self.turned += (psi - self.psi_prev + np.pi) % (2.0 * np.pi) - np.pi
+        self.psi_prev = psi
+        k = self.turned_hist.shape[0]
+        # The turn k steps ago, unless the flight started or escaped since.
+        recent = (self.escape_t > t - k) | (t < k)
+        ago = np.where(recent, self.turned_from, self.turned_hist[t % k])
+        self.turned_hist[t % k] = self.turned
+        return np.abs(self.turned - ago) >= 2.0 * np.pi * cfg.circle_turns
+
+    def _count_circling(self, started: np.ndarray, by_circling: np.ndarray, t: int) -> None:
+        """Book escapes ``started`` (N,) bool, ``by_circling`` those the distance rule alone would not have started."""
+        self.circled += started & by_circling
+        self.turned_from = np.where(started, self.turned, self.turned_from)
+        self.escape_t = np.where(started, t, self.escape_t)
 
     def _observe(self, ids: np.ndarray, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
         """Mark the grid cells of each flight's image points near its height (kind ``map``)."""

@@ -282,7 +282,8 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         if shield is not None:
             rec["shield"] = {k: (v[i].item()) for k, v in sh.items()}
         if escape is not None:
-            rec["escape"] = {"escapes": int(escape.count[i]), "escape_steps": int(escape.escape_steps[i])}
+            rec["escape"] = {"escapes": int(escape.count[i]), "escape_steps": int(escape.escape_steps[i]),
+                             "by_circling": int(escape.circled[i])}  # fmt: skip
         records.append(rec)
     return records
 

@@ -13,12 +13,15 @@ from shield_nav.collisions import (
     bearings,
     breakdown,
     camera_angles,
+    circling,
     classify_hit,
     format_bearings,
+    format_circling,
     format_table,
     format_timeouts,
     last_progress,
     main,
+    max_turns,
     point_times,
     primitive_class,
     shield_share_before,
@@ -262,10 +265,84 @@ def test_timeouts_tell_a_stall_from_a_slow_flight_by_hand(tmp_path, capsys):
     assert (v["n"], v["stalled"]) == (2, 1)
     assert v["stalled_since_s"] == pytest.approx(8.5) and v["stalled_left_m"] == pytest.approx(44.0)
     assert v["closing_left_m"] == pytest.approx(20.0) and v["closing_m_s"] == pytest.approx(1.0)
-    assert "| r | 3 | 2 | 1 | 8.5 | 44.0 | 20.0 | 1.0 |" in format_timeouts(res)
+    assert "| r | 3 | 2 | 1 | 8.5 | 44.0 | 20.0 | 1.0 | - |" in format_timeouts(res)  # no heading: circling unknown
+    assert v["circling"] is None
     # A longer window: A's 21.5 s without progress still count as a stall; a 25 s window does not.
     assert timeouts(str(tmp_path), window_s=25.0)[("r", 3.0)]["stalled"] == 0
     main([str(tmp_path), "--timeouts", "--json"])
     assert json.loads(capsys.readouterr().out.strip())[0]["stalled"] == 1
     with pytest.raises(SystemExit):
         main([str(tmp_path), "--timeouts", "--bearing"])
+
+
+def _headed(heading):
+    """A trajectory (T, 5) at rest whose fifth column is ``heading`` [rad]."""
+    return np.column_stack([np.zeros((len(heading), 4)), heading])
+
+
+def test_max_turns_by_hand():
+    """Points every 0.1 s. An orbit at 1 rad/s turns 10 rad across any 10 s; a weave of +-1 rad less than 2 rad."""
+    t = np.arange(201) * 0.1  # 20 s
+    orbit = (t + np.pi) % (2 * np.pi) - np.pi  # wrapped at +-pi 3 times
+    assert max_turns(_headed(orbit), t) == pytest.approx(10.0 / (2 * np.pi))
+    assert max_turns(_headed(orbit), t, window_s=5.0) == pytest.approx(5.0 / (2 * np.pi))
+    assert max_turns(_headed(-orbit), t) == pytest.approx(10.0 / (2 * np.pi))  # the other way round counts the same
+    weave = np.sin(t)  # +-1 rad: across 10 s the net change sin(t + 10) - sin(t) is at most 2 |sin 5| = 1.918 rad
+    assert max_turns(_headed(weave), t) == pytest.approx(2 * abs(math.sin(5.0)) / (2 * np.pi), abs=1e-3)
+    # A flight shorter than the window is taken end to end: 4 s of orbit, 4 rad.
+    assert max_turns(_headed(orbit[:41]), t[:41]) == pytest.approx(4.0 / (2 * np.pi))
+    # Turning round once (2 pi) and back again: one turn at the most across any window, not the two it yawed through.
+    there_and_back = np.r_[np.linspace(0, 2 * np.pi, 50), np.linspace(2 * np.pi, 0, 50)]
+    wrapped = (there_and_back + np.pi) % (2 * np.pi) - np.pi
+    assert max_turns(_headed(wrapped), np.arange(100) * 0.1, window_s=100.0) == pytest.approx(1.0)
+    assert max_turns(_headed(wrapped), np.arange(100) * 0.1, window_s=1.0) == pytest.approx(
+        10 * 2 * np.pi / 49 / (2 * np.pi)
+    )
+    assert max_turns(np.zeros((5, 4)), np.arange(5) * 0.1) is None  # no heading column
+    assert max_turns(_headed([0.0]), np.zeros(1)) is None  # one point
+    with pytest.raises(ValueError, match="non-finite"):
+        max_turns(_headed([0.0, np.nan]), np.array([0.0, 0.1]))
+    with pytest.raises(ValueError, match="window_s"):
+        max_turns(_headed(orbit), t, window_s=0.0)
+    with pytest.raises(ValueError, match="shapes"):
+        max_turns(_headed(orbit), t[:-1])
+
+
+def test_circling_by_outcome_over_a_folder_and_cli(tmp_path, capsys):
+    """Three flights of 20 s: a straight success, a time-out that orbits at 1 rad/s for its middle 12 s (12 rad >= 1.5
+    turns within 10 s: 10 rad), a collision that weaves. Only the time-out circles; the time-out breakdown says so too.
+    """
+    t = np.arange(201) * 0.1
+    straight = np.c_[t * 2.0, np.zeros(201), np.full(201, 1.5), np.full(201, 2.0), np.zeros(201)]
+    turn = np.clip(t - 4.0, 0.0, 12.0)  # 0 rad until 4 s, then 1 rad/s until 16 s
+    orbit = straight.copy()
+    orbit[:, 0] = 1.0  # going nowhere
+    orbit[:, 4] = (turn + np.pi) % (2 * np.pi) - np.pi
+    weave = straight.copy()
+    weave[:, 4] = 0.8 * np.sin(t)
+    goal = [50.0, 0.0, 1.5]
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "success", "goal": goal, "traj": straight.tolist()},
+        {"trial": 1, "outcome": "timeout", "goal": goal, "traj": orbit.tolist()},
+        {"trial": 2, "outcome": "collision", "goal": goal, "traj": weave.tolist()},
+    ])  # fmt: skip
+    res = circling(str(tmp_path))
+    assert res == {("r", 3.0): {"success": [1, 0], "collision": [1, 0], "timeout": [1, 1], "out_of_bounds": [0, 0]}}
+    assert "| r | 3 | 3 | 1 | 0 / 1 | 0 / 1 | 1 / 1 | 0 / 0 |" in format_circling(res)
+    # 12 rad in all: not 2 turns (12.57 rad) even end to end.
+    assert circling(str(tmp_path), window_s=30.0, turns=2.0)[("r", 3.0)]["timeout"] == [1, 0]
+    assert timeouts(str(tmp_path))[("r", 3.0)]["circling"] == 1
+    main([str(tmp_path), "--circling", "--json"])
+    assert json.loads(capsys.readouterr().out.strip())[0]["by_outcome"]["timeout"] == [1, 1]
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--circling", "--timeouts"])
+    with pytest.raises(ValueError, match="turns"):
+        circling(str(tmp_path), turns=-1.0)
+
+
+def test_circling_needs_the_heading_column(tmp_path):
+    k = np.arange(11)
+    _unit(tmp_path, [{"trial": 0, "outcome": "timeout", "goal": [9.0, 0.0, 1.5],
+                      "traj": np.c_[k * 0.1, np.zeros(11), np.ones(11)].tolist()}])  # fmt: skip
+    with pytest.raises(ValueError, match="heading"):
+        circling(str(tmp_path))

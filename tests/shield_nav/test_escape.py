@@ -147,6 +147,52 @@ def test_the_map_plan_goes_round_a_mapped_wall_through_its_gap():
     assert np.isnan(esc._plan(0, pos, goal)).all()
 
 
+def test_a_circling_flight_escapes_before_the_distance_rule_and_a_weaving_one_does_not():
+    """Two flights closing on their goal at 1 m/s (the distance rule never fires). Flight 0 yaws at 2 rad/s: its net
+    turn reaches one full turn (2 pi rad) at t = pi s, the first step >= 314.16, 315, where its escape starts (4 s,
+    to 715). Its heading history restarts then; it keeps spinning, so at the hold's end it has turned 8 rad since:
+    a second escape at 715, for 6 s. Flight 1 weaves, 1.5 sin(2t) rad: at most 3 rad net in any window, never an
+    escape. Without ``circle_turns`` neither escapes."""
+    cfg = EscapeConfig(circle_turns=1.0, circle_window_s=6.0)
+    for c, expect in ((cfg, [2, 0]), (EscapeConfig(), [0, 0])):
+        esc = StallEscape(c, 2, DT)
+        goal, depth = np.tile([[100.0, 0.0, 0.0]], (2, 1)), _depth(2, 5.0, 5.0)
+        starts = []
+        for t in range(1000):
+            tt = t * DT
+            state = np.concatenate([_state(1, psi=math.remainder(2.0 * tt, 2 * math.pi)),
+                                    _state(1, psi=1.5 * math.sin(2.0 * tt))])  # fmt: skip
+            pos = np.array([[tt, 0.0, 0.0], [tt, 0.0, 0.0]])
+            before = esc.count.copy()
+            esc.apply(state, pos, goal, depth, t)
+            starts += [(t, i) for i in np.flatnonzero(esc.count > before)]
+        assert esc.count.tolist() == expect
+        if c.circle_turns > 0:
+            assert starts == [(315, 0), (715, 0)]
+            assert esc.circled.tolist() == [2, 0]
+            assert esc.escape_steps.tolist() == [400 + 285, 0]  # the second hold runs past t = 999
+        else:
+            assert esc.circled.tolist() == [0, 0]
+
+
+def test_the_circling_rule_turns_the_map_guide_on_and_needs_every_step():
+    """Map kind: a hovering flight spinning at 2 rad/s is guided from step 315, the distance rule's 5 s not awaited."""
+    from envs.camera.config import CameraConfig
+
+    esc = StallEscape(EscapeConfig(kind="map", circle_turns=1.0), 1, DT, CameraConfig())
+    pos, goal = np.array([[2.0, 5.0, 1.5]]), np.array([[18.0, 5.0, 1.5]])
+    depth = np.zeros((1, 1, 60, 100), dtype=np.float32)  # no return: nothing mapped
+    bounds = (np.zeros(2), np.array([20.0, 10.0]))
+    for t in range(320):
+        psi = math.remainder(2.0 * t * DT, 2 * math.pi)
+        r = np.array([[[math.cos(psi), -math.sin(psi), 0.0], [math.sin(psi), math.cos(psi), 0.0], [0.0, 0.0, 1.0]]])
+        esc.apply(_state(1, psi=psi), pos, goal, depth, t, bounds=bounds, R_wb=r)
+        assert esc.guided[0] == (t >= 315), t
+    assert esc.circled[0] == 1
+    with pytest.raises(ValueError, match="one call per control step"):
+        esc.apply(_state(1), pos, goal, depth, 400, bounds=bounds, R_wb=np.eye(3)[None])
+
+
 def test_finished_flights_start_no_escape_and_bad_input_is_named():
     esc = StallEscape(EscapeConfig(window_s=0.05), 2, DT)
     state, depth = _state(2), _depth(2, 5.0, 5.0)
@@ -164,6 +210,10 @@ def test_finished_flights_start_no_escape_and_bad_input_is_named():
         StallEscape(EscapeConfig(kind="maps"), 1, DT)
     with pytest.raises(ValueError, match="needs the camera"):
         StallEscape(EscapeConfig(kind="map"), 1, DT)
+    with pytest.raises(ConfigError, match=r"escape\.circle_turns"):
+        StallEscape(EscapeConfig(circle_turns=-1.0), 1, DT)
+    with pytest.raises(ConfigError, match=r"escape\.circle_window_s"):
+        StallEscape(EscapeConfig(circle_window_s=0.0), 1, DT)
     with pytest.raises(ConfigError, match=r"escape\.min_progress"):
         StallEscape(EscapeConfig(min_progress=math.nan), 1, DT)
     bad = _state(2)

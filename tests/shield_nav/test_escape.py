@@ -233,7 +233,7 @@ def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
     assert [t["steps"] for t in never] == [t["steps"] for t in plain]
     assert [t["outcome"] for t in never] == [t["outcome"] for t in plain]
     assert [t["traj"] for t in never] == [t["traj"] for t in plain]
-    assert all(t["escape"] == {"escapes": 0, "escape_steps": 0} for t in never)
+    assert all(t["escape"] == {"escapes": 0, "escape_steps": 0, "by_circling": 0} for t in never)
     cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=1000.0", "escape.kind=map"])
     (spec,) = E.plan_units(E.prepare(cfg))
     mapped = E.run_unit(spec)["trials"]  # the map is built all flight long; it steers nothing until a stall

@@ -2,10 +2,20 @@
 
 All functions take the harness's summary/unit dicts (see :mod:`shield_nav.evaluation`) and write PNGs with the
 Agg backend (no display needed).
+
+``eval.py`` draws the trajectories of its first scenes at its top speed. Any other scene and speed of a finished
+output folder, without flying again:
+
+``python -m shield_nav.evaluation.plots eval_out/<name> --scenes 12,13 [--speeds 3,5] [--rows full] [--out DIR]``
+
+writes one figure per scene, a panel per (row, speed) flown there (:func:`trajectory_figures`).
 """
 
 from __future__ import annotations
 
+import argparse
+import glob
+import json
 import os
 from typing import Any
 
@@ -248,3 +258,92 @@ def animate_topdown(scene: Any, fields: Any, trial: dict, path: str, fps: int = 
     FuncAnimation(fig, update, frames=len(tr), blit=False).save(path, writer=PillowWriter(fps=fps))
     plt.close(fig)
     return path
+
+
+def trajectory_figures(
+    out_dir: str,
+    scenes: list[int],
+    speeds: list[float] | None = None,
+    rows: list[str] | None = None,
+    dest: str | None = None,
+) -> list[str]:
+    """Top-down trajectory figures of an ``eval.py`` output folder: one PNG per scene in ``scenes``.
+
+    Each figure has a panel per unit (row and speed) of that scene, filtered by ``speeds`` and ``rows`` (default
+    all), drawn over the scene the folder flew (its config's scene seed) with :func:`plot_trajectories`. Written to
+    ``dest`` (default ``<out_dir>/figures``) as ``trajectories_<family>-<index>_<speeds>.png``.
+
+    Raises:
+        FileNotFoundError: ``out_dir`` has no ``config.yaml`` or no unit files.
+        ValueError: A scene, speed or row was not flown there (the message names it and what was flown).
+    """
+    from envs.fields import build_fields
+    from shield_nav.evaluation.config import load_eval_config
+    from shield_nav.evaluation.rollout import flown_scene, nav_config
+
+    cfg_path = os.path.join(out_dir, "config.yaml")
+    if not os.path.isfile(cfg_path):
+        raise FileNotFoundError(f"no config.yaml in {out_dir!r}: not an eval.py output folder")
+    files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
+    if not files:
+        raise FileNotFoundError(f"no unit files under {os.path.join(out_dir, 'units')!r}")
+    cfg = load_eval_config(cfg_path)
+    units = []
+    for path in files:
+        with open(path) as fh:
+            units.append(json.load(fh))
+    flown_scenes = sorted({int(u["scene"]) for u in units})
+    flown_speeds = sorted({float(u["speed"]) for u in units})
+    flown_rows = sorted({u["row"] for u in units})
+    for name, want, have in (("scene", scenes, flown_scenes), ("speed", speeds or [], flown_speeds),
+                             ("row", rows or [], flown_rows)):  # fmt: skip
+        missing = [w for w in want if w not in have]
+        if missing:
+            raise ValueError(f"{out_dir}: {name}(s) {missing} not flown there; flown: {have}")
+    labels: dict[str, str] = {}
+    summary_path = os.path.join(out_dir, "summary.json")
+    if os.path.isfile(summary_path):  # a finished run names its rows' labels (a stopped one flies without)
+        with open(summary_path) as fh:
+            labels = {k: r.get("label") or k for k, r in json.load(fh).get("rows", {}).items()}
+    dest = dest or os.path.join(out_dir, "figures")
+    os.makedirs(dest, exist_ok=True)
+    paths = []
+    for idx in scenes:
+        here = [u for u in units if int(u["scene"]) == idx and (not speeds or float(u["speed"]) in speeds)
+                and (not rows or u["row"] in rows)]  # fmt: skip
+        here.sort(key=lambda u: (u["row"], float(u["speed"])))
+        family = here[0]["family"]
+        nav = nav_config(cfg, family, idx, float(here[0]["speed"]), 1)
+        scene = flown_scene(cfg, family, idx)
+        fields = build_fields(scene, resolution=nav.scenes.field_resolution,
+                              vehicle_radius=nav.vehicle.airframe.collision_radius)  # fmt: skip
+        tag = "_".join(f"v{v:g}" for v in sorted({float(u["speed"]) for u in here}))
+        path = os.path.join(dest, f"trajectories_{family}-{idx:02d}_{tag}.png")
+        plot_trajectories(scene, fields, here, labels, path)
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> None:
+    """CLI entry point (see the module docstring)."""
+    ap = argparse.ArgumentParser(description="Top-down trajectories of chosen scenes of an eval.py output folder")
+    ap.add_argument("out_dir", help="an eval.py output folder (eval_out/<name>)")
+    ap.add_argument("--scenes", required=True, help="comma-separated scene indices, e.g. 12,13")
+    ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all flown)")
+    ap.add_argument("--rows", default="", help="comma-separated rows (default: all flown)")
+    ap.add_argument("--out", default=None, help="folder for the PNGs (default: <out_dir>/figures)")
+    a = ap.parse_args(argv)
+    try:
+        scenes = [int(x) for x in a.scenes.split(",") if x]
+        speeds = [float(x) for x in a.speeds.split(",") if x] or None
+    except ValueError:
+        ap.error(f"--scenes must be integers and --speeds numbers, got {a.scenes!r} and {a.speeds!r}")
+    if not scenes:
+        ap.error("--scenes names no scene")
+    rows = [r for r in a.rows.split(",") if r] or None
+    for p in trajectory_figures(a.out_dir, scenes, speeds, rows, a.out):
+        print(p)
+
+
+if __name__ == "__main__":
+    main()

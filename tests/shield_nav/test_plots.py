@@ -1,0 +1,60 @@
+"""Trajectory figures of a finished eval output (shield_nav/evaluation/plots.py): what is drawn, and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from envs.config import to_dict
+from shield_nav.evaluation.config import load_eval_config
+from shield_nav.evaluation.plots import main, trajectory_figures
+
+
+def _folder(tmp_path):
+    """An output folder of the default eval config with two units of ablation scene 0 (3 and 5 m/s), by hand."""
+    cfg = load_eval_config()
+    tmp_path.mkdir()
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    (tmp_path / "units").mkdir()
+    k = np.arange(50)[:, None]
+    straight = np.hstack([5.0 + 0.3 * k, np.full_like(k, 0.0), np.full_like(k, 1.5), np.full_like(k, 3.0)])
+    for speed in (3.0, 5.0):
+        goal = [25.0, 0.0, 1.5]
+        unit = {"row": "full", "family": "ablation", "scene": 0, "speed": speed,
+                "summary": {"success_rate": 0.5, "n": 2},
+                "trials": [{"outcome": "success", "goal": goal, "traj": straight.tolist()},
+                           {"outcome": "collision", "goal": goal, "traj": straight[:20].tolist()}]}  # fmt: skip
+        (tmp_path / "units" / f"full__ablation-00__v{speed:g}.json").write_text(json.dumps(unit))
+    (tmp_path / "summary.json").write_text(json.dumps({"rows": {"full": {"label": "Full"}}}))
+    return tmp_path
+
+
+def test_one_figure_per_scene_with_a_panel_per_unit_and_the_cli(tmp_path, capsys):
+    out = _folder(tmp_path / "run")
+    one = trajectory_figures(str(out), [0], speeds=[3.0], dest=str(tmp_path / "a"))
+    assert one == [str(tmp_path / "a" / "trajectories_ablation-00_v3.png")]
+    both = trajectory_figures(str(out), [0], dest=str(tmp_path / "b"))
+    assert both == [str(tmp_path / "b" / "trajectories_ablation-00_v3_v5.png")]
+    h1, h2 = Image.open(one[0]).size[1], Image.open(both[0]).size[1]
+    assert 1.8 * h1 < h2 < 2.2 * h1  # two panels stacked, each as tall as the one-panel figure's
+    main([str(out), "--scenes", "0", "--rows", "full"])
+    assert capsys.readouterr().out.strip() == str(out / "figures" / "trajectories_ablation-00_v3_v5.png")
+    assert (out / "figures" / "trajectories_ablation-00_v3_v5.png").stat().st_size > 10_000
+
+
+def test_what_was_not_flown_is_named(tmp_path):
+    out = _folder(tmp_path / "run")
+    with pytest.raises(ValueError, match=r"scene\(s\) \[4\] not flown there; flown: \[0\]"):
+        trajectory_figures(str(out), [4])
+    with pytest.raises(ValueError, match=r"speed\(s\) \[7.0\]"):
+        trajectory_figures(str(out), [0], speeds=[7.0])
+    with pytest.raises(ValueError, match=r"row\(s\) \['expert'\]"):
+        trajectory_figures(str(out), [0], rows=["expert"])
+    with pytest.raises(FileNotFoundError, match="config.yaml"):
+        trajectory_figures(str(tmp_path), [0])
+    with pytest.raises(SystemExit):
+        main([str(out), "--scenes", "a"])

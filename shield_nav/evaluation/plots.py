@@ -311,6 +311,8 @@ def trajectory_figures(
     for idx in scenes:
         here = [u for u in units if int(u["scene"]) == idx and (not speeds or float(u["speed"]) in speeds)
                 and (not rows or u["row"] in rows)]  # fmt: skip
+        if not here:
+            raise ValueError(f"{out_dir}: scene {idx} was not flown at speeds {speeds} by rows {rows}")
         here.sort(key=lambda u: (u["row"], float(u["speed"])))
         family = here[0]["family"]
         nav = nav_config(cfg, family, idx, float(here[0]["speed"]), 1)

@@ -54,6 +54,11 @@ def test_what_was_not_flown_is_named(tmp_path):
         trajectory_figures(str(out), [0], speeds=[7.0])
     with pytest.raises(ValueError, match=r"row\(s\) \['expert'\]"):
         trajectory_figures(str(out), [0], rows=["expert"])
+    (out / "units" / "full__ablation-00__v5.json").rename(out / "units" / "full__ablation-01__v5.json")
+    unit = json.loads((out / "units" / "full__ablation-01__v5.json").read_text())
+    (out / "units" / "full__ablation-01__v5.json").write_text(json.dumps({**unit, "scene": 1}))
+    with pytest.raises(ValueError, match=r"scene 0 was not flown at speeds \[5.0\]"):
+        trajectory_figures(str(out), [0], speeds=[5.0])  # 5 m/s was flown, but in scene 1 only
     with pytest.raises(FileNotFoundError, match="config.yaml"):
         trajectory_figures(str(tmp_path), [0])
     with pytest.raises(SystemExit):

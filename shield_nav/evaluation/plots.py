@@ -6,9 +6,12 @@ Agg backend (no display needed).
 ``eval.py`` draws the trajectories of its first scenes at its top speed. Any other scene and speed of a finished
 output folder, without flying again:
 
-``python -m shield_nav.evaluation.plots eval_out/<name> --scenes 12,13 [--speeds 3,5] [--rows full] [--out DIR]``
+``python -m shield_nav.evaluation.plots eval_out/<name> [eval_out/<other> ...] --scenes 12,13 [--speeds 3,5]
+[--rows full] [--xlim 0,40] [--out DIR]``
 
-writes one figure per scene, a panel per (row, speed) flown there (:func:`trajectory_figures`).
+writes one figure per scene, a panel per (row, speed) flown there (:func:`trajectory_figures`); given several
+folders that flew the same scenes (two variants, or a row with and without its shield), their panels stack in one
+figure, in the order the folders are given.
 """
 
 from __future__ import annotations
@@ -97,7 +100,13 @@ def plot_velocity(summary: dict, path: str) -> None:
 
 
 def plot_trajectories(
-    scene: Any, fields: Any, units: list[dict], labels: dict[str, str], path: str, vmax: float | None = None
+    scene: Any,
+    fields: Any,
+    units: list[dict],
+    labels: dict[str, str],
+    path: str,
+    vmax: float | None = None,
+    xlim: tuple[float, float] | None = None,
 ) -> None:
     """Top-down trajectories over the scene's ESDF (one panel per unit), coloured by speed; collisions as red X.
 
@@ -108,6 +117,7 @@ def plot_trajectories(
         labels: Row name -> label.
         path: PNG path.
         vmax: Top of the speed colour scale (default: the largest speed flown).
+        xlim: The x range [m] drawn (default: the scene's); a unit's ``label`` key, if any, names its panel.
     """
     plt = _plt()
     from matplotlib.collections import LineCollection
@@ -116,12 +126,15 @@ def plot_trajectories(
 
     n = len(units)
     w = 10.0
-    h = w * scene.size[1] / scene.size[0] + 0.9
+    span = (xlim[1] - xlim[0]) if xlim else scene.size[0]
+    h = 0.78 * w * scene.size[1] / span + 0.9
     fig, axes = plt.subplots(n, 1, figsize=(w, h * n), squeeze=False, layout="constrained")
     vmax = vmax or max((max((p[3] for p in t["traj"]), default=1.0) for u in units for t in u["trials"]), default=1.0)
     lc = None
     for ax, unit in zip(axes[:, 0], units, strict=True):
         draw_scene(ax, scene, fields)
+        if xlim:
+            ax.set_xlim(*xlim)
         for t in unit["trials"]:
             tr = np.asarray(t["traj"])
             if len(tr) < 2:
@@ -135,8 +148,9 @@ def plot_trajectories(
                 ax.plot(tr[-1, 0], tr[-1, 1], "x", color="red", ms=8, mew=2)
             ax.plot(*t["goal"][:2], "*", color="tab:orange", ms=6)
         s = unit["summary"]
+        label = unit.get("label") or labels.get(unit["row"], unit["row"])
         ax.set_title(
-            f"{labels.get(unit['row'], unit['row'])}: {scene.family} {scene.index} at {unit['speed']:g} m/s, "
+            f"{label}: {scene.family} {scene.index} at {unit['speed']:g} m/s, "
             f"SR {100 * s['success_rate']:.0f}% (n={s['n']}, red X = collision)",
             fontsize=9,
         )
@@ -261,89 +275,125 @@ def animate_topdown(scene: Any, fields: Any, trial: dict, path: str, fps: int = 
 
 
 def trajectory_figures(
-    out_dir: str,
+    out_dir: str | list[str],
     scenes: list[int],
     speeds: list[float] | None = None,
     rows: list[str] | None = None,
     dest: str | None = None,
+    xlim: tuple[float, float] | None = None,
 ) -> list[str]:
-    """Top-down trajectory figures of an ``eval.py`` output folder: one PNG per scene in ``scenes``.
+    """Top-down trajectory figures of ``eval.py`` output folders: one PNG per scene in ``scenes``.
 
     Each figure has a panel per unit (row and speed) of that scene, filtered by ``speeds`` and ``rows`` (default
-    all), drawn over the scene the folder flew (its config's scene seed) with :func:`plot_trajectories`. Written to
-    ``dest`` (default ``<out_dir>/figures``) as ``trajectories_<family>-<index>_<speeds>.png``.
+    all), drawn over the scene the folder flew (its config's scene seed) with :func:`plot_trajectories`. Several
+    folders (a list) stack their panels in the order given; they must have flown the same scene (its content
+    digest is compared), and a row name flown in more than one of them is labelled with its folder's name too.
+    Written to ``dest`` (default ``<first folder>/figures``) as ``trajectories_<family>-<index>_<speeds>.png``.
 
     Raises:
-        FileNotFoundError: ``out_dir`` has no ``config.yaml`` or no unit files.
-        ValueError: A scene, speed or row was not flown there (the message names it and what was flown).
+        FileNotFoundError: A folder has no ``config.yaml`` or no unit files.
+        ValueError: A scene, speed or row was not flown in a folder (the message names it and what was flown
+            there), the folders flew different scenes under one index, or ``xlim`` is not an increasing pair.
     """
     from envs.fields import build_fields
     from shield_nav.evaluation.config import load_eval_config
     from shield_nav.evaluation.rollout import flown_scene, nav_config
 
-    cfg_path = os.path.join(out_dir, "config.yaml")
-    if not os.path.isfile(cfg_path):
-        raise FileNotFoundError(f"no config.yaml in {out_dir!r}: not an eval.py output folder")
-    files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
-    if not files:
-        raise FileNotFoundError(f"no unit files under {os.path.join(out_dir, 'units')!r}")
-    cfg = load_eval_config(cfg_path)
-    units = []
-    for path in files:
-        with open(path) as fh:
-            units.append(json.load(fh))
-    flown_scenes = sorted({int(u["scene"]) for u in units})
-    flown_speeds = sorted({float(u["speed"]) for u in units})
-    flown_rows = sorted({u["row"] for u in units})
-    for name, want, have in (("scene", scenes, flown_scenes), ("speed", speeds or [], flown_speeds),
-                             ("row", rows or [], flown_rows)):  # fmt: skip
-        missing = [w for w in want if w not in have]
-        if missing:
-            raise ValueError(f"{out_dir}: {name}(s) {missing} not flown there; flown: {have}")
-    labels: dict[str, str] = {}
-    summary_path = os.path.join(out_dir, "summary.json")
-    if os.path.isfile(summary_path):  # a finished run names its rows' labels (a stopped one flies without)
-        with open(summary_path) as fh:
-            labels = {k: r.get("label") or k for k, r in json.load(fh).get("rows", {}).items()}
-    dest = dest or os.path.join(out_dir, "figures")
+    dirs = [out_dir] if isinstance(out_dir, str) else list(out_dir)
+    if not dirs:
+        raise ValueError("trajectory_figures: no output folder given")
+    if xlim is not None and not (len(xlim) == 2 and all(np.isfinite(xlim)) and xlim[0] < xlim[1]):
+        raise ValueError(f"xlim must be two finite numbers lo < hi [m], got {xlim!r}")
+    runs = []  # (folder, config, units, labels)
+    for d in dirs:
+        cfg_path = os.path.join(d, "config.yaml")
+        if not os.path.isfile(cfg_path):
+            raise FileNotFoundError(f"no config.yaml in {d!r}: not an eval.py output folder")
+        files = sorted(glob.glob(os.path.join(d, "units", "*.json")))
+        if not files:
+            raise FileNotFoundError(f"no unit files under {os.path.join(d, 'units')!r}")
+        units = []
+        for path in files:
+            with open(path) as fh:
+                units.append(json.load(fh))
+        flown_scenes = sorted({int(u["scene"]) for u in units})
+        flown_speeds = sorted({float(u["speed"]) for u in units})
+        flown_rows = sorted({u["row"] for u in units})
+        for name, want, have in (("scene", scenes, flown_scenes), ("speed", speeds or [], flown_speeds),
+                                 ("row", rows or [], flown_rows)):  # fmt: skip
+            missing = [w for w in want if w not in have]
+            if missing:
+                raise ValueError(f"{d}: {name}(s) {missing} not flown there; flown: {have}")
+        labels: dict[str, str] = {}
+        summary_path = os.path.join(d, "summary.json")
+        if os.path.isfile(summary_path):  # a finished run names its rows' labels (a stopped one flies without)
+            with open(summary_path) as fh:
+                labels = {k: r.get("label") or k for k, r in json.load(fh).get("rows", {}).items()}
+        runs.append((d, load_eval_config(cfg_path), units, labels))
+    row_dirs: dict[str, set[str]] = {}
+    for d, _, units, _ in runs:
+        for u in units:
+            row_dirs.setdefault(u["row"], set()).add(d)
+    dest = dest or os.path.join(dirs[0], "figures")
     os.makedirs(dest, exist_ok=True)
     paths = []
     for idx in scenes:
-        here = [u for u in units if int(u["scene"]) == idx and (not speeds or float(u["speed"]) in speeds)
-                and (not rows or u["row"] in rows)]  # fmt: skip
-        if not here:
-            raise ValueError(f"{out_dir}: scene {idx} was not flown at speeds {speeds} by rows {rows}")
-        here.sort(key=lambda u: (u["row"], float(u["speed"])))
-        family = here[0]["family"]
-        nav = nav_config(cfg, family, idx, float(here[0]["speed"]), 1)
-        scene = flown_scene(cfg, family, idx)
+        panels, scene, nav = [], None, None
+        for d, cfg, units, labels in runs:
+            here = [u for u in units if int(u["scene"]) == idx and (not speeds or float(u["speed"]) in speeds)
+                    and (not rows or u["row"] in rows)]  # fmt: skip
+            if not here:
+                raise ValueError(f"{d}: scene {idx} was not flown at speeds {speeds} by rows {rows}")
+            here.sort(key=lambda u: (u["row"], float(u["speed"])))
+            family = here[0]["family"]
+            flown = flown_scene(cfg, family, idx)
+            if scene is None:
+                scene, nav = flown, nav_config(cfg, family, idx, float(here[0]["speed"]), 1)
+            elif flown.digest() != scene.digest():
+                raise ValueError(f"{d} flew another scene as {family} {idx} than {dirs[0]} (another family or "
+                                 "scene seed): their flights cannot share a figure")  # fmt: skip
+            for u in here:
+                name = labels.get(u["row"], u["row"])
+                if len(row_dirs[u["row"]]) > 1:
+                    name = f"{name} ({os.path.basename(os.path.normpath(d))})"
+                panels.append({**u, "label": name})
         fields = build_fields(scene, resolution=nav.scenes.field_resolution,
                               vehicle_radius=nav.vehicle.airframe.collision_radius)  # fmt: skip
-        tag = "_".join(f"v{v:g}" for v in sorted({float(u["speed"]) for u in here}))
-        path = os.path.join(dest, f"trajectories_{family}-{idx:02d}_{tag}.png")
-        plot_trajectories(scene, fields, here, labels, path)
+        tag = "_".join(f"v{v:g}" for v in sorted({float(u["speed"]) for u in panels}))
+        path = os.path.join(dest, f"trajectories_{scene.family}-{idx:02d}_{tag}.png")
+        plot_trajectories(scene, fields, panels, {}, path, xlim=xlim)
         paths.append(path)
     return paths
 
 
 def main(argv: list[str] | None = None) -> None:
     """CLI entry point (see the module docstring)."""
-    ap = argparse.ArgumentParser(description="Top-down trajectories of chosen scenes of an eval.py output folder")
-    ap.add_argument("out_dir", help="an eval.py output folder (eval_out/<name>)")
+    ap = argparse.ArgumentParser(description="Top-down trajectories of chosen scenes of eval.py output folders")
+    ap.add_argument("out_dirs", nargs="+", help="eval.py output folders (eval_out/<name>); several stack their panels")
     ap.add_argument("--scenes", required=True, help="comma-separated scene indices, e.g. 12,13")
     ap.add_argument("--speeds", default="", help="comma-separated target speeds (default: all flown)")
     ap.add_argument("--rows", default="", help="comma-separated rows (default: all flown)")
-    ap.add_argument("--out", default=None, help="folder for the PNGs (default: <out_dir>/figures)")
+    ap.add_argument("--xlim", default="", help="x range drawn [m], LO,HI (default: the whole scene)")
+    ap.add_argument("--out", default=None, help="folder for the PNGs (default: <first folder>/figures)")
     a = ap.parse_args(argv)
     try:
         scenes = [int(x) for x in a.scenes.split(",") if x]
         speeds = [float(x) for x in a.speeds.split(",") if x] or None
     except ValueError:
         ap.error(f"--scenes must be integers and --speeds numbers, got {a.scenes!r} and {a.speeds!r}")
+    xlim = None
+    if a.xlim:
+        try:
+            lo, hi = (float(x) for x in a.xlim.split(","))
+        except ValueError:
+            ap.error(f"--xlim must be two numbers LO,HI, got {a.xlim!r}")
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            ap.error(f"--xlim must be finite with LO < HI, got {a.xlim!r}")
+        xlim = (lo, hi)
     if not scenes:
         ap.error("--scenes names no scene")
     rows = [r for r in a.rows.split(",") if r] or None
-    for p in trajectory_figures(a.out_dir, scenes, speeds, rows, a.out):
+    for p in trajectory_figures(a.out_dirs, scenes, speeds, rows, a.out, xlim):
         print(p)
 
 

@@ -63,3 +63,43 @@ def test_what_was_not_flown_is_named(tmp_path):
         trajectory_figures(str(tmp_path), [0])
     with pytest.raises(SystemExit):
         main([str(out), "--scenes", "a"])
+
+
+def test_two_folders_stack_their_panels_and_name_a_shared_row_by_folder(tmp_path, monkeypatch):
+    a, b = _folder(tmp_path / "a"), _folder(tmp_path / "b")
+    one = trajectory_figures(str(a), [0], speeds=[3.0], dest=str(tmp_path / "one"))
+    two = trajectory_figures([str(a), str(b)], [0], speeds=[3.0], dest=str(tmp_path / "two"))
+    h1, h2 = Image.open(one[0]).size[1], Image.open(two[0]).size[1]
+    assert 1.8 * h1 < h2 < 2.2 * h1  # a panel from each folder
+    import shield_nav.evaluation.plots as plots
+
+    drawn = []
+    monkeypatch.setattr(plots, "plot_trajectories", lambda scene, fields, units, *a, **k: drawn.append(units))
+    trajectory_figures([str(a), str(b)], [0], speeds=[3.0, 5.0], dest=str(tmp_path / "three"))
+    # Folder order first, then row and speed; row 'full' was flown in both, so each label names its folder.
+    assert [u["label"] for u in drawn[0]] == ["Full (a)", "Full (a)", "Full (b)", "Full (b)"]
+    assert [u["speed"] for u in drawn[0]] == [3.0, 5.0, 3.0, 5.0]
+
+
+def test_folders_that_flew_another_scene_cannot_share_a_figure(tmp_path):
+    a, b = _folder(tmp_path / "a"), _folder(tmp_path / "b")
+    cfg = yaml.safe_load((b / "config.yaml").read_text())
+    cfg["scenes"]["seed"] = 1_234_567  # the same index drawn from another (validation) generator seed
+    (b / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    with pytest.raises(ValueError, match="flew another scene as ablation 0"):
+        trajectory_figures([str(a), str(b)], [0])
+
+
+def test_xlim_draws_part_of_the_scene_and_bad_limits_are_named(tmp_path):
+    out = _folder(tmp_path / "run")
+    whole = trajectory_figures(str(out), [0], speeds=[3.0], dest=str(tmp_path / "w"))
+    part = trajectory_figures(str(out), [0], speeds=[3.0], dest=str(tmp_path / "p"), xlim=(0.0, 20.0))
+    (w1, h1), (w2, h2) = Image.open(whole[0]).size, Image.open(part[0]).size
+    assert w1 == w2 and h2 > 1.5 * h1  # a third of the scene's 64 m drawn as wide: taller
+    for bad in ((5.0, 5.0), (0.0, float("nan")), (1.0,)):
+        with pytest.raises(ValueError, match="xlim"):
+            trajectory_figures(str(out), [0], xlim=bad)
+    with pytest.raises(SystemExit):
+        main([str(out), "--scenes", "0", "--xlim", "0,a"])
+    with pytest.raises(SystemExit):
+        main([str(out), "--scenes", "0", "--xlim", "9,3"])

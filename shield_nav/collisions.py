@@ -54,6 +54,7 @@ from envs.camera.config import CameraConfig
 from envs.scenes import Primitive, Scene, make_scene
 from envs.scenes.sdf import primitive_sdf
 from envs.vehicle.config import VehicleConfig
+from shield_nav.evaluation.metrics import CIRCLE_TURNS, CIRCLE_WINDOW_S, max_turns
 
 THIN_RADIUS = 0.08
 """Cylinders and capsules with a smaller radius (m) are ``thin`` (poles, frame bars)."""
@@ -61,10 +62,6 @@ MAX_HIT_DISTANCE = 0.6
 """A nearest surface farther than this (m) from the final position is ``unresolved``."""
 YAW_WINDOW_S = 0.5
 """The window [s] before a crash over which :func:`yaw_rate_before` averages the yaw rate."""
-CIRCLE_WINDOW_S = 10.0
-"""The window [s] within which :func:`circling` looks for a flight's net heading rotation."""
-CIRCLE_TURNS = 1.5
-"""Net heading rotation [full turns] within :data:`CIRCLE_WINDOW_S` from which a flight counts as circling."""
 OUTCOMES = ("success", "collision", "timeout", "out_of_bounds")
 """A trial's outcomes, in the order :func:`format_circling` lists them."""
 
@@ -188,30 +185,6 @@ def shield_share_before(traj: np.ndarray, times: np.ndarray, window_s: float = Y
     k = np.flatnonzero(t[1:] > t[-1] - window_s + 1e-9) + 1  # intervals (t[k-1], t[k]] ending in the window
     w = t[k] - t[k - 1]
     return float(np.sum(tr[k, 5] * w) / np.sum(w)) if len(k) and np.sum(w) > 0 else None
-
-
-def max_turns(traj: np.ndarray, times: np.ndarray, window_s: float = CIRCLE_WINDOW_S) -> float | None:
-    """The largest net rotation [full turns] of a flight's heading across ``window_s`` of it.
-
-    ``traj`` is ``(T, >= 5)`` (x, y, z, speed, heading [rad]), ``times`` its points' times [s]. The heading is
-    unwrapped (each change between recorded points taken in (-pi, pi]: at a point every 0.1 s that holds below
-    1,800 deg/s) and every point's is compared with the last point's at most ``window_s`` later (a point within
-    ``window_s`` of the flight's end: with the end). Turning left then right cancels; orbiting adds up. ``None``
-    for fewer than two points or without the heading column.
-    """
-    tr, t = np.asarray(traj, dtype=np.float64), np.asarray(times, dtype=np.float64)
-    if tr.ndim != 2 or t.shape != (len(tr),):
-        raise ValueError(f"need a trajectory (T, C) with T times, got shapes {tr.shape} and {t.shape}")
-    if not (math.isfinite(window_s) and window_s > 0):
-        raise ValueError(f"window_s must be finite and > 0, got {window_s}")
-    if tr.shape[1] < 5 or len(tr) < 2:
-        return None
-    if not np.all(np.isfinite(tr[:, 4])):
-        raise ValueError("the heading column holds a non-finite value")
-    dh = (np.diff(tr[:, 4]) + np.pi) % (2.0 * np.pi) - np.pi
-    h = np.concatenate(([0.0], np.cumsum(dh)))
-    j = np.searchsorted(t, t + window_s + 1e-9, side="right") - 1  # the last point within the window
-    return float(np.max(np.abs(h[j] - h)) / (2.0 * np.pi))
 
 
 def point_times(steps: int, every: int, dt: float) -> np.ndarray:

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from shield_nav.evaluation.config import Z95
+
+CIRCLE_WINDOW_S = 10.0
+"""The window [s] within which :func:`max_turns` looks for a flight's net heading rotation."""
+CIRCLE_TURNS = 1.5
+"""Net heading rotation [full turns] within :data:`CIRCLE_WINDOW_S` from which a flight counts as circling."""
 
 
 def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
@@ -65,6 +71,13 @@ def _nanmean(values: list[float]) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
+def _circled(turns: float | None) -> float | None:
+    """1.0 / 0.0 whether ``max_turns`` reaches :data:`CIRCLE_TURNS`; None where the trial lacks it or it is NaN."""
+    if turns is None or not math.isfinite(turns):
+        return None
+    return float(turns >= CIRCLE_TURNS)
+
+
 def aggregate(trials: list[dict]) -> dict[str, Any]:
     """Cell metrics over trials (see the module docstring). Shield rates pool control steps over trials."""
     n = len(trials)
@@ -90,6 +103,8 @@ def aggregate(trials: list[dict]) -> dict[str, Any]:
         "path_ratio": _nanmean([t["metrics"]["path_ratio"] for t in succ]),
         # Successes that flew over the obstacles (NaN for trial files written before the metric existed).
         "over_top": _nanmean([t["metrics"].get("flew_over") for t in succ]),
+        # Flights that circled: net heading rotation >= CIRCLE_TURNS within CIRCLE_WINDOW_S (NaN without the metric).
+        "circling": _nanmean([_circled(t["metrics"].get("max_turns")) for t in trials]),
     }
     if sh:
         out.update(
@@ -106,3 +121,27 @@ def aggregate(trials: list[dict]) -> dict[str, Any]:
             }
         )
     return out
+
+
+def max_turns(traj: np.ndarray, times: np.ndarray, window_s: float = CIRCLE_WINDOW_S) -> float | None:
+    """The largest net rotation [full turns] of a flight's heading across ``window_s`` of it.
+
+    ``traj`` is ``(T, >= 5)`` (x, y, z, speed, heading [rad]), ``times`` its points' times [s]. The heading is
+    unwrapped (each change between recorded points taken in (-pi, pi]: at a point every 0.1 s that holds below
+    1,800 deg/s) and every point's is compared with the last point's at most ``window_s`` later (a point within
+    ``window_s`` of the flight's end: with the end). Turning left then right cancels; orbiting adds up. ``None``
+    for fewer than two points or without the heading column.
+    """
+    tr, t = np.asarray(traj, dtype=np.float64), np.asarray(times, dtype=np.float64)
+    if tr.ndim != 2 or t.shape != (len(tr),):
+        raise ValueError(f"need a trajectory (T, C) with T times, got shapes {tr.shape} and {t.shape}")
+    if not (math.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"window_s must be finite and > 0, got {window_s}")
+    if tr.shape[1] < 5 or len(tr) < 2:
+        return None
+    if not np.all(np.isfinite(tr[:, 4])):
+        raise ValueError("the heading column holds a non-finite value")
+    dh = (np.diff(tr[:, 4]) + np.pi) % (2.0 * np.pi) - np.pi
+    h = np.concatenate(([0.0], np.cumsum(dh)))
+    j = np.searchsorted(t, t + window_s + 1e-9, side="right") - 1  # the last point within the window
+    return float(np.max(np.abs(h[j] - h)) / (2.0 * np.pi))

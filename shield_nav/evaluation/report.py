@@ -80,6 +80,7 @@ DETAIL_COLUMNS = [
     ("coll %", "collision_rate", lambda c: _pct(c["collision_rate"])),
     ("timeout %", "timeout_rate", lambda c: _pct(c["timeout_rate"])),
     ("OOB %", "oob_rate", lambda c: _pct(c["oob_rate"])),
+    ("circling %", "circling", lambda c: _pct(c.get("circling"))),
     ("Vel", "vel", lambda c: _num(c["vel"])),
     ("clear mean", "clearance_mean", lambda c: _num(c["clearance_mean"])),
     ("clear min", "clearance_min", lambda c: _num(c["clearance_min"])),
@@ -137,9 +138,9 @@ def latex_table(prep: Prepared, summary: dict) -> str:
 
 def csv_table(prep: Prepared, summary: dict) -> str:
     """One CSV line per (configuration, speed) cell with every metric."""
-    keys = ["n", "successes", "success_rate", "sr_lo", "sr_hi", "collision_rate", "timeout_rate", "oob_rate", "vel",
-            "clearance_mean", "clearance_min", "path_ratio", "over_top", "shield_active", "corr_mean", "corr_max",
-            "relaxed", "qp_us_mean", "qp_us_max", "shield_us_mean", "switched"]  # fmt: skip
+    keys = ["n", "successes", "success_rate", "sr_lo", "sr_hi", "collision_rate", "timeout_rate", "oob_rate",
+            "circling", "vel", "clearance_mean", "clearance_min", "path_ratio", "over_top", "shield_active",
+            "corr_mean", "corr_max", "relaxed", "qp_us_mean", "qp_us_max", "shield_us_mean", "switched"]  # fmt: skip
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["configuration", "label", "speed", *keys])

@@ -17,7 +17,7 @@ from envs.scenes import FAMILIES, make_scene
 from shield_nav.baselines import Controller, make_baseline
 from shield_nav.escape import StallEscape
 from shield_nav.evaluation.config import EVAL_FORMAT_VERSION, EvalConfig, EvalError, RowConfig, row_shield_config
-from shield_nav.evaluation.metrics import aggregate, trajectory_metrics
+from shield_nav.evaluation.metrics import aggregate, max_turns, trajectory_metrics
 from shield_nav.evaluation.policies import LoadedPolicy, LoadedTeacher, PolicyInfo, load_policy, load_teacher
 from shield_nav.shield import STATUS_FALLBACK, STATUS_RELAXED, HOCBFShield
 
@@ -268,6 +268,11 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         if shield is not None:  # the share of the control steps since the previous point on which the shield acted
             acted = np.diff(A[keep, i], prepend=0.0)
             cols.append((acted / np.maximum(np.diff(keep, prepend=0), 1))[:, None])
+        traj = np.round(np.concatenate(cols, axis=1), 3)
+        # The largest net heading rotation in 10 s [turns], on the recorded points, as `collisions --circling` reads
+        # them back from the unit file (so the two agree trial for trial).
+        turns = max_turns(traj, np.asarray(keep, dtype=np.float64) * dt)
+        m["max_turns"] = float("nan") if turns is None else turns
         rec = {
             **trial,
             "row": spec.row_name,
@@ -277,7 +282,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             "outcome": outcome[i],
             "steps": T,
             "metrics": m,
-            "traj": np.round(np.concatenate(cols, axis=1), 3).tolist(),
+            "traj": traj.tolist(),
         }
         if shield is not None:
             rec["shield"] = {k: (v[i].item()) for k, v in sh.items()}

@@ -6,6 +6,7 @@ few hundred control steps, so a run takes seconds.
 """
 
 import dataclasses
+import glob
 import json
 import math
 import os
@@ -122,6 +123,15 @@ def test_aggregate_hand_made():
     trials = [_trial("success", 4.0, 1.0, 0.5, 1.1, over=1.0), _trial("success", 5.0, 0.8, 0.3, 1.3, over=0.0),
               _trial("collision", 9.0, 0.6, 0.1, float("nan"), over=1.0)]  # fmt: skip
     assert E.aggregate(trials)["over_top"] == pytest.approx(0.5)
+    # Circling counts every outcome, over the trials that carry the metric: 2.0 turns circles, 1.4 does not (the
+    # threshold is 1.5), a NaN (too short a record to tell) and a trial file from before the metric are left out.
+    assert math.isnan(E.aggregate(trials)["circling"])
+    for t, turns in zip(trials, (2.0, 1.4, float("nan")), strict=True):
+        t["metrics"]["max_turns"] = turns
+    trials.append(_trial("timeout", 1.0, 1.2, 0.7, 2.0))
+    assert E.aggregate(trials)["circling"] == pytest.approx(0.5)
+    trials[2]["metrics"]["max_turns"] = 1.5
+    assert E.aggregate(trials)["circling"] == pytest.approx(2 / 3)
 
 
 def test_accel_to_command_and_free_distance_by_hand():
@@ -296,6 +306,17 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     pick = ("row", "scene", "trial", "seed", "outcome", "steps")
     assert [{k: r[k] for k in pick} for r in kept] == [{k: t[k] for k in pick} for t in trials]
     assert [r["metrics"]["flew_over"] for r in kept] == [t["metrics"]["flew_over"] for t in trials]
+    # Each trial's max_turns is what `collisions --circling` reads back from its unit file's recorded points.
+    from shield_nav.collisions import max_turns, point_times
+
+    units = []
+    for path in sorted(glob.glob(os.path.join(out1, "units", "*.json"))):
+        with open(path) as fh:
+            units.append(json.load(fh))
+    every, dt = tiny_cfg().trajectory_every, 0.01
+    for t in (t for u in units for t in u["trials"]):
+        again = max_turns(np.asarray(t["traj"]), point_times(t["steps"], every, dt))
+        assert np.isfinite(again) and t["metrics"]["max_turns"] == again
     with open(os.path.join(out1, "manifest.json")) as f:
         man = json.load(f)
     assert len(man["git"]["rev"]) >= 7 and man["config"]["seed"] == 0

@@ -14,6 +14,11 @@ from envs.config import require
 from envs.vehicle.config import VehicleConfig
 
 REWARD_TERMS = ("navigation", "safety", "smooth", "collision", "success", "speed", "height")
+CIRCLE_WINDOW_S = 10.0
+"""The window [s] within which a flight's net heading rotation is measured (``episode/circling``, the evaluation's
+``metrics.max_turns``)."""
+CIRCLE_TURNS = 1.5
+"""Net heading rotation [full turns] within :data:`CIRCLE_WINDOW_S` from which a flight counts as circling."""
 
 
 @dataclass

@@ -16,7 +16,7 @@ from envs.config import load_config
 from envs.fields import scene_field_stack
 from envs.fields.anchors import GoalAnchorFields
 from envs.navigation import rewards as R
-from envs.navigation.config import REWARD_TERMS, NavConfig
+from envs.navigation.config import CIRCLE_TURNS, CIRCLE_WINDOW_S, REWARD_TERMS, NavConfig
 from envs.navigation.memory import SceneMemory
 from envs.scenes import make_scene
 from envs.scenes.families import is_training_family
@@ -45,6 +45,10 @@ CLOCK_EXTRA = (
     ("slack", 1, "the clock observation (``episode.clock_input``)"),
 )
 """Columns the critic vector gains, after the min-pooled depth, with ``episode.deadline: terminate``."""
+
+
+TURN_EVERY = 10
+"""Control steps between the heading samples of ``episode/circling`` (the evaluation records every 10th too)."""
 
 
 class NavigationEnv(VectorEnv):
@@ -190,6 +194,14 @@ class NavigationEnv(VectorEnv):
         self.ep_terms_buf = np.zeros((n, len(REWARD_TERMS)))
         self.ep_speed_buf = np.zeros(n)
         self.ep_min_esdf_buf = np.zeros(n)
+        # Circling (episode/circling): the unwrapped heading, sampled every TURN_EVERY steps into a ring buffer that
+        # spans CIRCLE_WINDOW_S, and the episode's largest net rotation [turns] between a sample and the one a window
+        # earlier (or the episode's start).
+        self._turn_len = max(1, int(round(CIRCLE_WINDOW_S / (TURN_EVERY * cfg.vehicle.command_dt))))
+        self.heading_prev_buf = np.zeros(n)
+        self.heading_total_buf = np.zeros(n)
+        self.heading_hist_buf = np.zeros((n, self._turn_len))
+        self.ep_max_turns_buf = np.zeros(n)
         self._nominal = {
             "mass": self.vehicles.model.body_mass[self.vehicles.body_ids].copy(),
             "inertia": self.vehicles.model.body_inertia[self.vehicles.body_ids].copy(),
@@ -570,6 +582,10 @@ class NavigationEnv(VectorEnv):
         self.ep_terms_buf[env_ids] = 0.0
         self.ep_speed_buf[env_ids] = 0.0
         self.ep_min_esdf_buf[env_ids] = np.inf
+        self.heading_prev_buf[env_ids] = self.headings[env_ids]
+        self.heading_total_buf[env_ids] = 0.0
+        self.heading_hist_buf[env_ids] = 0.0
+        self.ep_max_turns_buf[env_ids] = 0.0
         self.noise.reset(env_ids)
         if self.memory is not None:
             self.memory.reset(env_ids)
@@ -657,6 +673,7 @@ class NavigationEnv(VectorEnv):
         speed = np.linalg.norm(self.vehicles.vel_w, axis=1)
         self.ep_speed_buf[live] += speed[live]
         self.ep_min_esdf_buf = np.minimum(self.ep_min_esdf_buf, self._field_cache[1])
+        self._track_turns(live)
         log: dict[str, Any] = {f"reward/{t}": float(scaled[live, i].mean()) if live.any() else 0.0
                                for i, t in enumerate(REWARD_TERMS)}  # fmt: skip
         log["curriculum/mean_level"] = float(self.level_buf.mean())
@@ -673,10 +690,25 @@ class NavigationEnv(VectorEnv):
             log["episode/mean_speed"] = self.ep_speed_buf[ids] / steps
             log["episode/min_clearance"] = self.ep_min_esdf_buf[ids]
             log["episode/target_speed"] = self.target_speed_buf[ids].copy()
+            log["episode/circling"] = (self.ep_max_turns_buf[ids] >= CIRCLE_TURNS).astype(np.float64)
             for i, t in enumerate(REWARD_TERMS):
                 log[f"episode_reward/{t}"] = self.ep_terms_buf[ids, i].copy()
             info["episode_steps"] = steps
         return info
+
+    def _track_turns(self, live: np.ndarray) -> None:
+        """Unwrap each live vehicle's heading; every TURN_EVERY steps, its net rotation over the last window."""
+        h = self.headings
+        dh = (h - self.heading_prev_buf + np.pi) % (2.0 * np.pi) - np.pi
+        self.heading_prev_buf = h
+        self.heading_total_buf[live] += dh[live]
+        k = self.episode_length_buf
+        due = np.flatnonzero(live & (k % TURN_EVERY == 0))
+        if len(due):
+            slot = (k[due] // TURN_EVERY) % self._turn_len
+            turns = np.abs(self.heading_total_buf[due] - self.heading_hist_buf[due, slot]) / (2.0 * np.pi)
+            self.ep_max_turns_buf[due] = np.maximum(self.ep_max_turns_buf[due], turns)
+            self.heading_hist_buf[due, slot] = self.heading_total_buf[due]
 
     def close(self, **kwargs: Any) -> None:  # noqa: D102
         pass

@@ -7,12 +7,9 @@ from typing import Any
 
 import numpy as np
 
+# The circling rule, shared with the training env's ``episode/circling`` (envs/navigation/config.py).
+from envs.navigation.config import CIRCLE_TURNS, CIRCLE_WINDOW_S
 from shield_nav.evaluation.config import Z95
-
-CIRCLE_WINDOW_S = 10.0
-"""The window [s] within which :func:`max_turns` looks for a flight's net heading rotation."""
-CIRCLE_TURNS = 1.5
-"""Net heading rotation [full turns] within :data:`CIRCLE_WINDOW_S` from which a flight counts as circling."""
 
 
 def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:

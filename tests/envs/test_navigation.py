@@ -350,3 +350,31 @@ def test_rsl_rl_adapter_restores_curriculum_levels(family):
     np.testing.assert_array_equal(vec.env.scene_id_buf, [2, 0, 1, 2])  # every episode restarted on its level
     with pytest.raises(ValueError, match="curriculum levels"):
         vec.set_curriculum_levels([0, 3, 0, 0])
+
+
+def test_circling_is_the_net_heading_rotation_over_ten_seconds(quiet_env, monkeypatch):
+    # The bookkeeping behind episode/circling on scripted headings: env 0 orbits at 1 rad/s (crossing the +-pi seam
+    # every 6.3 s), env 1 weaves +-0.5 rad, env 2 turns half a turn and back, env 3 is frozen while it would orbit.
+    env = quiet_env
+    env.reset(seed=0)
+    dt = env.cfg.vehicle.command_dt
+    script = {"h": np.zeros(4)}
+    monkeypatch.setattr(NavigationEnv, "headings", property(lambda self: script["h"].copy()))
+    env.heading_prev_buf[:] = 0.0
+    env.heading_total_buf[:] = 0.0
+    env.heading_hist_buf[:] = 0.0
+    env.ep_max_turns_buf[:] = 0.0
+    live = np.array([True, True, True, False])
+    for k in range(1, 1501):  # 15 s
+        t = k * dt
+        turn = math.pi * min(t, 5.0) / 5.0 - math.pi * max(0.0, min(t - 5.0, 5.0)) / 5.0
+        h = np.array([t, 0.5 * math.sin(t), turn, t])
+        script["h"] = (h + math.pi) % (2 * math.pi) - math.pi
+        env.episode_length_buf[:] = k
+        env._track_turns(live)
+    # Orbit: 10 rad in every 10 s window -> 10 / 2 pi = 1.59 turns (>= 1.5: circling).
+    assert env.ep_max_turns_buf[0] == pytest.approx(10.0 / (2 * math.pi), abs=1e-9)
+    # Weave: at most 1 rad apart (0.16 turns); half a turn and back: 0.5 turns; the frozen env counted nothing.
+    assert env.ep_max_turns_buf[1] <= 1.0 / (2 * math.pi) + 1e-9
+    assert env.ep_max_turns_buf[2] == pytest.approx(0.5, abs=1e-9)
+    assert env.ep_max_turns_buf[3] == 0.0

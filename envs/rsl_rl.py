@@ -148,6 +148,11 @@ class RslRlVecEnv(VecEnv):
         return self.env.curriculum_active
 
     @property
+    def num_scenes(self) -> int:
+        """Length of the training scene list (the range of the curriculum levels)."""
+        return len(self.env.scenes)
+
+    @property
     def curriculum_levels(self) -> list[int]:
         """Each env's curriculum level (scene index into the training list)."""
         return self.env.level_buf.tolist()

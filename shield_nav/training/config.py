@@ -308,6 +308,12 @@ class TrainConfig:
     """Total PPO iterations of the run; a resumed run continues until it reaches this count."""
     num_threads: int = 0
     """Torch intra-op threads; 0 picks the CPUs this process may use (os.sched_getaffinity)."""
+    env_shards: int = 1
+    """Worker processes that step the envs (:class:`envs.sharded.ShardedVecEnv`): each builds and steps
+    ``env.num_envs / env_shards`` of them with ``env.seed + k``, in parallel, and the learner sees one batch. 1: one
+    process, the shipped recipes' setting (a sharded run draws its episodes from K seeds, so it does not repeat the
+    unsharded run of the same seed). Raises collection throughput on machines with more cores than the env's
+    threaded parts use (docs/training.md, "Hardware and throughput")."""
     env: NavConfig = field(default_factory=NavConfig)
     """The task (``envs.navigation.NavConfig``)."""
     runner: RunnerConfig = field(default_factory=RunnerConfig)
@@ -333,6 +339,9 @@ class TrainConfig:
         """Cross-field checks naming the key."""
         require(self.max_iterations >= 1, f"{prefix}max_iterations", f"must be >= 1, got {self.max_iterations}")
         require(self.num_threads >= 0, f"{prefix}num_threads", "must be >= 0")
+        require(self.env_shards >= 1, f"{prefix}env_shards", f"must be >= 1, got {self.env_shards}")
+        require(self.env.num_envs % self.env_shards == 0, f"{prefix}env_shards",
+                f"{self.env_shards} must divide env.num_envs ({self.env.num_envs})")  # fmt: skip
         require(
             self.device == "cpu" or self.device.startswith("cuda"),
             f"{prefix}device",

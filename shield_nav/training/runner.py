@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import functools
 import glob
 import math
 import os
@@ -112,7 +113,26 @@ def configure_threads(num_threads: int) -> int:
 
 
 def make_env(cfg: TrainConfig) -> VecEnv:
-    """The rsl-rl VecEnv of the task (CPU, numpy inside; tensors on the learner device)."""
+    """The rsl-rl VecEnv of the task (CPU, numpy inside; tensors on the learner device).
+
+    With ``env_shards`` K > 1, K worker processes each step :func:`shard_env` ``(cfg, k)``
+    (:class:`envs.sharded.ShardedVecEnv`).
+    """
+    if cfg.env_shards > 1:
+        from envs.sharded import ShardedVecEnv
+
+        factories = [functools.partial(shard_env, cfg, k) for k in range(cfg.env_shards)]
+        return ShardedVecEnv(factories, device=cfg.device, cfg=cfg)
+    return _single_env(cfg)
+
+
+def shard_env(cfg: TrainConfig, k: int) -> VecEnv:
+    """Shard ``k`` of a sharded run: the unsharded env of ``num_envs / env_shards`` envs and ``env.seed + k`` (CPU)."""
+    env_cfg = dataclasses.replace(cfg.env, num_envs=cfg.env.num_envs // cfg.env_shards, seed=cfg.env.seed + k)
+    return _single_env(dataclasses.replace(cfg, env=env_cfg, env_shards=1, device="cpu"))
+
+
+def _single_env(cfg: TrainConfig) -> VecEnv:
     from envs.navigation import NavigationEnv
     from envs.rsl_rl import RslRlVecEnv
 
@@ -217,7 +237,7 @@ def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: boo
         if not env.curriculum_active:
             print(f"[train] curriculum off: the levels stored in {source} are not used", flush=True)
             return
-        num_scenes = len(env.env.scenes)
+        num_scenes = env.num_scenes
         if max(levels) >= num_scenes:
             print(
                 f"[train] the levels stored in {source} reach {max(levels)}, beyond this scene list "
@@ -381,6 +401,8 @@ def train(
         interrupted = True
     finally:
         stop.restore()
+        if hasattr(env, "close"):  # a sharded env's worker processes
+            env.close()
 
     if rank == 0:
         it = runner.current_learning_iteration

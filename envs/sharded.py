@@ -110,7 +110,7 @@ class ShardedVecEnv(VecEnv):
         factories: One picklable callable per shard (e.g. a ``functools.partial`` of a module-level function), each
             returning a VecEnv on the CPU (an :class:`envs.rsl_rl.RslRlVecEnv`).
         device: Torch device of the joined tensors (the learner's).
-        cfg: The run's config (``VecEnv.cfg``).
+        cfg: The task's config (``VecEnv.cfg``; the shards' env config, as the single-process adapter holds).
         numba_threads: numba threads per worker (default: this machine's cores / K, at least 1).
     """
 

@@ -122,7 +122,7 @@ def make_env(cfg: TrainConfig) -> VecEnv:
         from envs.sharded import ShardedVecEnv
 
         factories = [functools.partial(shard_env, cfg, k) for k in range(cfg.env_shards)]
-        return ShardedVecEnv(factories, device=cfg.device, cfg=cfg)
+        return ShardedVecEnv(factories, device=cfg.device, cfg=cfg.env)
     return _single_env(cfg)
 
 

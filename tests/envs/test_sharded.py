@@ -40,6 +40,7 @@ def test_two_shards_repeat_their_single_process_envs_step_for_step_through_episo
     try:
         singles = [shard_env(cfg, k) for k in range(2)]
         assert sharded.num_envs == 4 and sharded.shard_sizes == [2, 2]
+        assert sharded.cfg == cfg.env  # VecEnv.cfg: the task's config, as the single-process adapter's
         assert {s.env.cfg.seed for s in singles} == {cfg.env.seed, cfg.env.seed + 1}
         obs = sharded.get_observations()
         assert set(obs.keys()) >= {"depth", "state", "critic", "expert"}

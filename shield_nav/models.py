@@ -212,6 +212,70 @@ def expand_state_inputs(
     return out
 
 
+def widen_encoder(state_dict: dict[str, torch.Tensor], model: DepthGRUModel) -> dict[str, torch.Tensor]:
+    """Map a :class:`DepthGRUModel` state dict onto ``model`` whose depth encoder is wider (a warm start).
+
+    ``model`` has the same convolution stack (layer count, kernels, strides, pooling) with at least as many channels
+    in every layer and at least as many image features. Each layer's old filters keep their weights and read only
+    the old input channels (zero weights on the new ones); the new filters and features keep ``model``'s own
+    initial weights, and the GRU reads the new features through zero weights. So the wider model acts exactly as
+    the old one, and training grows the new channels from there (the function-preserving widening of Chen et al.,
+    "Net2Net", 2016, with zero rather than split outgoing weights). The rest of the state dict is taken unchanged.
+    """
+    own = model.state_dict()
+    convs = sorted(
+        {int(k.split(".")[2]) for k in own if k.startswith("encoder.conv.") and k.endswith(".weight")}
+    )  # indices of the Conv2d layers inside encoder.conv
+    keys = [f"encoder.conv.{i}.weight" for i in convs] + ["encoder.proj.1.weight", "rnn.rnn.weight_ih_l0"]
+    missing = [k for k in keys if k not in state_dict]
+    if missing:
+        raise ValueError(f"widen_encoder: the state dict lacks {missing} (not a DepthGRUModel with the same stack)")
+    out = dict(state_dict)
+    c_in_old = c_in_new = int(own[keys[0]].shape[1])
+    for i in convs:
+        old, new = state_dict[f"encoder.conv.{i}.weight"], own[f"encoder.conv.{i}.weight"]
+        if old.shape[2:] != new.shape[2:] or old.shape[1] != c_in_old or new.shape[1] != c_in_new:
+            raise ValueError(f"widen_encoder: convolution {i} is {tuple(old.shape)} in the state dict and "
+                             f"{tuple(new.shape)} in the model: not the same stack")  # fmt: skip
+        if old.shape[0] > new.shape[0]:
+            raise ValueError(f"widen_encoder: convolution {i} has {old.shape[0]} channels in the state dict, "
+                             f"{new.shape[0]} in the model (narrowing is not a warm start)")  # fmt: skip
+        w = new.clone()
+        w[: old.shape[0]] = 0.0
+        w[: old.shape[0], :c_in_old] = old
+        b = own[f"encoder.conv.{i}.bias"].clone()
+        b[: old.shape[0]] = state_dict[f"encoder.conv.{i}.bias"]
+        out[f"encoder.conv.{i}.weight"], out[f"encoder.conv.{i}.bias"] = w, b
+        c_in_old, c_in_new = int(old.shape[0]), int(new.shape[0])
+    # The flattened map is channel-major: old channel c's values sit at c * HW .. (c + 1) * HW - 1 in both.
+    c_new, h, w_ = model.encoder.conv_out_shape
+    hw = h * w_
+    old, new = state_dict["encoder.proj.1.weight"], own["encoder.proj.1.weight"]
+    if old.shape[1] != c_in_old * hw or old.shape[0] > new.shape[0]:
+        raise ValueError(f"widen_encoder: the image projection is {tuple(old.shape)} in the state dict and "
+                         f"{tuple(new.shape)} in the model")  # fmt: skip
+    p = new.clone()
+    p[: old.shape[0]] = 0.0
+    p[: old.shape[0], : c_in_old * hw] = old
+    pb = own["encoder.proj.1.bias"].clone()
+    pb[: old.shape[0]] = state_dict["encoder.proj.1.bias"]
+    out["encoder.proj.1.weight"], out["encoder.proj.1.bias"] = p, pb
+    f_old, f_new = int(old.shape[0]), int(new.shape[0])
+    g = state_dict["rnn.rnn.weight_ih_l0"]  # (3 Hd, S + F_old): the image features are the last columns
+    out["rnn.rnn.weight_ih_l0"] = torch.cat([g, g.new_zeros((g.shape[0], f_new - f_old))], dim=1)
+    return out
+
+
+def encoder_is_wider(state_dict: dict[str, torch.Tensor], model: DepthGRUModel) -> bool:
+    """Whether ``model``'s depth encoder has more channels or image features than the state dict's."""
+    own = model.state_dict()
+    return any(
+        k in state_dict and own[k].shape[0] > state_dict[k].shape[0]
+        for k in own
+        if k.startswith("encoder.") and k.endswith(".weight")
+    )
+
+
 class DepthGRUModel(MLPModel):
     """Depth CNN + GRU + MLP actor for rsl-rl 5.x (paper, "Network Architecture").
 

@@ -110,5 +110,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     from shield_nav.training.runner import train  # torch, rsl-rl: only now that the inputs are known to be good
 
-    train(cfg, resume=args.resume)
+    try:
+        train(cfg, resume=args.resume)
+    except ConfigError as err:  # an input only readable with torch (e.g. a checkpoint's shapes), before iteration 0
+        print(f"train.py: error: {err}", file=sys.stderr)
+        return 2
     return 0

@@ -209,19 +209,36 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
 
 
 def _widened(weights: dict, model: Any, what: str) -> dict:
-    """``weights`` for ``model``, widened when the model's state has more values.
+    """``weights`` for ``model``, widened where the model is wider.
 
     A new group after ``state`` (e.g. ``memory`` or ``clock``) enters through zero weights
-    (:func:`shield_nav.models.expand_state_inputs`); otherwise ``weights`` unchanged.
+    (:func:`shield_nav.models.expand_state_inputs`); a wider depth encoder (more channels or image features) keeps
+    the old filters and reads its new ones through zero weights (:func:`shield_nav.models.widen_encoder`). Either
+    way the model acts as the one it starts from. Otherwise ``weights`` unchanged.
     """
-    from shield_nav.models import expand_state_inputs
+    from shield_nav.models import encoder_is_wider, expand_state_inputs, widen_encoder
 
     mean = weights.get("obs_normalizer._mean")
-    if mean is None or not hasattr(model, "obs_dim") or mean.shape[-1] >= model.obs_dim:
+    if mean is not None and hasattr(model, "obs_dim") and mean.shape[-1] < model.obs_dim:
+        print(f"[train] {what} state widened from {mean.shape[-1]} to {model.obs_dim} values "
+              f"(new inputs start at zero weight)", flush=True)  # fmt: skip
+        weights = expand_state_inputs(weights, model)
+    if not hasattr(model, "encoder"):
         return weights
-    print(f"[train] {what} state widened from {mean.shape[-1]} to {model.obs_dim} values "
-          f"(new inputs start at zero weight)", flush=True)  # fmt: skip
-    return expand_state_inputs(weights, model)
+    before = [int(v.shape[0]) for k, v in weights.items() if k.startswith("encoder.") and k.endswith(".weight")]
+    after = [int(v.shape[0]) for k, v in model.state_dict().items()
+             if k.startswith("encoder.") and k.endswith(".weight")]  # fmt: skip
+    if len(before) == len(after) and any(b > a for b, a in zip(before, after, strict=True)):
+        raise ConfigError(
+            f"config key 'runner.actor.cnn_channels' / 'cnn_feature_dim': the checkpoint's depth encoder has "
+            f"{before[:-1]} channels and {before[-1]} features, this {what} {after[:-1]} and {after[-1]}; "
+            f"set them to the checkpoint's (or wider)"
+        )
+    if encoder_is_wider(weights, model):
+        print(f"[train] {what} depth encoder widened from {before} to {after} channels / features "
+              f"(new ones start at zero outgoing weight)", flush=True)  # fmt: skip
+        weights = widen_encoder(weights, model)
+    return weights
 
 
 def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: bool = False) -> None:

@@ -19,6 +19,7 @@ from shield_nav.models import (
     expand_single_head,
     expand_state_inputs,
     export_policy,
+    widen_encoder,
 )
 
 S, C_DIM, A = 21, 40, 4  # state, critic and action sizes
@@ -328,6 +329,45 @@ def test_encoder_runs_channels_last_with_the_values_of_a_plain_nchw_stack():
     assert other.conv[2].weight.is_contiguous(memory_format=torch.channels_last)
     with torch.no_grad():
         assert torch.allclose(other(x), got, atol=1e-6)
+
+
+def test_widen_encoder_starts_as_the_narrow_model_and_then_trains_its_new_channels():
+    """A wider encoder warm-started from a narrow one acts as it, then the new channels learn."""
+    old, gen = make_actor(n=3, seed=8, cnn_channels=[4, 8, 8], cnn_feature_dim=8)
+    torch.manual_seed(9)
+    new = DepthGRUModel(make_obs(3, gen), GROUPS, "actor", A, distribution_cfg=GAUSS,
+                        **{**SMALL, "cnn_channels": [6, 10, 12], "cnn_feature_dim": 20})  # fmt: skip
+    sd = widen_encoder(old.state_dict(), new)
+    new.load_state_dict(sd)
+    old.eval()
+    new.eval()
+    with torch.no_grad():
+        for _ in range(3):  # the GRU state follows too
+            step = make_obs(3, gen)
+            torch.testing.assert_close(new(step), old(step))
+        # The old filters of conv 2 (layer index 2 in the Sequential: conv, relu, conv) read only the 4 old inputs;
+        # the old features read only old channels' 3 x 6 cells (channel-major flatten: the first 8 * 18 columns).
+        w2 = sd["encoder.conv.2.weight"]
+        assert torch.equal(w2[:8, 4:], torch.zeros(8, 2, 3, 3))
+        assert torch.equal(w2[:8, :4], old.state_dict()["encoder.conv.2.weight"])
+        assert torch.count_nonzero(w2[8:]) > 0  # the 2 new filters keep their own initial weights
+        proj = sd["encoder.proj.1.weight"]
+        assert proj.shape == (20, 12 * 18)
+        assert torch.equal(proj[:8, 8 * 18 :], torch.zeros(8, 4 * 18))
+        assert torch.equal(proj[:8, : 8 * 18], old.state_dict()["encoder.proj.1.weight"])
+        gru = sd["rnn.rnn.weight_ih_l0"]  # (3 Hd, S + F): the 12 new features are read through zeros
+        assert torch.equal(gru[:, S + 8 :], torch.zeros(3 * SMALL["rnn_hidden_dim"], 12))
+    # One gradient step moves the GRU's weights on the new features (their activations are not zero).
+    new.train()
+    new.reset()
+    loss = new(make_obs(3, gen)).square().sum()
+    loss.backward()
+    assert new.rnn.rnn.weight_ih_l0.grad[:, S + 8 :].abs().sum() > 0
+    with pytest.raises(ValueError, match="narrowing is not a warm start"):
+        widen_encoder(new.state_dict(), old)
+    other, _ = make_actor(n=3, seed=8, cnn_channels=[4, 8, 8], cnn_kernel_sizes=[4, 5, 3], cnn_feature_dim=8)
+    with pytest.raises(ValueError, match="convolution 2 is"):
+        widen_encoder(other.state_dict(), new)
 
 
 def test_expand_state_inputs_adds_inputs_that_start_without_effect():

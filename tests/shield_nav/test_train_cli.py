@@ -255,6 +255,40 @@ def test_actor_init_widens_a_narrower_actor_onto_a_clock_input_and_the_deadline_
     assert sess.get_inputs()[0].shape[1] == 22
 
 
+def test_actor_init_widens_a_narrower_depth_encoder_and_refuses_a_wider_one(tmp_path):
+    """PPO from the 8-16-32 / 64 encoder onto 12-16-48 / 80: it flies as the source; the other way is a clear error."""
+    root = str(tmp_path / "logs")
+    res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root])
+    assert res.returncode == 0, res.stderr[-3000:]
+    src_path = os.path.join(only_run_dir(root), "model_0.pt")
+    src = torch.load(src_path, weights_only=False)["actor_state_dict"]
+    wide = ["runner.actor.cnn_channels=[12,16,48]", "runner.actor.cnn_feature_dim=80"]
+    root2 = str(tmp_path / "logs2")
+    res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root2, "--set", *wide,
+                     f"runner.actor_init={src_path}", "runner.critic_warmup_iterations=1",
+                     "runner.algorithm.schedule=fixed"])  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "actor depth encoder widened from [8, 16, 32, 64] to [12, 16, 48, 80]" in res.stdout
+    wide_path = os.path.join(only_run_dir(root2), "model_0.pt")
+    widened = torch.load(wide_path, weights_only=False)["actor_state_dict"]
+    # Frozen for the critic's warm-up iteration: the old filters as loaded, the new features read through zeros.
+    torch.testing.assert_close(widened["encoder.conv.0.weight"][:8], src["encoder.conv.0.weight"])
+    torch.testing.assert_close(widened["encoder.proj.1.weight"][:64, : 32 * 18], src["encoder.proj.1.weight"])
+    assert (widened["rnn.rnn.weight_ih_l0"][:, 21 + 64 :] == 0).all()
+    sess = ort.InferenceSession(os.path.join(only_run_dir(root2), "exported", "policy.onnx"),
+                                providers=["CPUExecutionProvider"])  # fmt: skip
+    rng = np.random.default_rng(2)
+    feed = {"obs": rng.normal(size=(2, 21)).astype(np.float32),
+            "depth": rng.uniform(0, 1, (2, 1, 60, 100)).astype(np.float32),
+            "h_in": np.zeros((1, 2, 128), np.float32)}  # fmt: skip
+    act, _ = sess.run(None, feed)  # the wider export runs (its equality to the source: test_models)
+    assert act.shape == (2, 4) and np.isfinite(act).all()
+    # The wider actor onto the default encoder: refused by name before any iteration.
+    res = run_train([*TINY, "--max-iterations", "1", "--log-dir", str(tmp_path / "logs3"), "--set",
+                     f"runner.actor_init={wide_path}"])  # fmt: skip
+    assert res.returncode == 2 and "runner.actor.cnn_channels" in res.stderr and "[12, 16, 48]" in res.stderr
+
+
 def test_distillation_inputs_fail_fast(tmp_path):
     root = str(tmp_path / "logs")
     res = run_train(["--config", "configs/experiments/distill_dijkstra_cbf.yaml", "--log-dir", root,

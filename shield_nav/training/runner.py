@@ -241,6 +241,27 @@ def _widened(weights: dict, model: Any, what: str) -> dict:
     return weights
 
 
+def _check_encoder_widths(cfg: TrainConfig, resume: str | os.PathLike | None) -> None:
+    """Refuse a warm start whose depth encoder is wider than ``runner.actor``'s, before any folder or env is made.
+
+    The widths are read from the checkpoint's convolution and projection weights: output channels per layer, then
+    the image features. A narrower checkpoint is widened at load (:func:`_widened`); a wider one cannot be.
+    """
+    path = cfg.runner.student_init or cfg.runner.actor_init
+    if resume is not None or not path or "cnn_channels" not in dataclasses.asdict(cfg.runner.actor):
+        return
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict") or {}
+    before = [int(v.shape[0]) for k, v in weights.items() if k.startswith("encoder.") and k.endswith(".weight")]
+    after = [*(int(c) for c in cfg.runner.actor.cnn_channels), int(cfg.runner.actor.cnn_feature_dim)]
+    if len(before) == len(after) and any(b > a for b, a in zip(before, after, strict=True)):
+        raise ConfigError(
+            f"config key 'runner.actor.cnn_channels' / 'cnn_feature_dim': the depth encoder of {path} has "
+            f"{before[:-1]} channels and {before[-1]} features, runner.actor {after[:-1]} and {after[-1]}; "
+            f"set them to the checkpoint's (or wider)"
+        )
+
+
 def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: bool = False) -> None:
     """Put the envs back on the curriculum levels a checkpoint stored (same env count only).
 
@@ -319,6 +340,7 @@ def train(
             raise ConfigError("config key 'device': multi-process training (WORLD_SIZE > 1) needs 'cuda'")
         device = f"cuda:{int(os.getenv('LOCAL_RANK', '0'))}"
     check_files(cfg, resume)
+    _check_encoder_widths(cfg, resume)
     threads = configure_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed + rank)
     print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)

@@ -283,10 +283,11 @@ def test_actor_init_widens_a_narrower_depth_encoder_and_refuses_a_wider_one(tmp_
             "h_in": np.zeros((1, 2, 128), np.float32)}  # fmt: skip
     act, _ = sess.run(None, feed)  # the wider export runs (its equality to the source: test_models)
     assert act.shape == (2, 4) and np.isfinite(act).all()
-    # The wider actor onto the default encoder: refused by name before any iteration.
+    # The wider actor onto the default encoder: refused by name before any work.
     res = run_train([*TINY, "--max-iterations", "1", "--log-dir", str(tmp_path / "logs3"), "--set",
                      f"runner.actor_init={wide_path}"])  # fmt: skip
     assert res.returncode == 2 and "runner.actor.cnn_channels" in res.stderr and "[12, 16, 48]" in res.stderr
+    assert not os.path.exists(tmp_path / "logs3")  # refused before a run folder or an env was made
 
 
 def test_distillation_inputs_fail_fast(tmp_path):

@@ -24,7 +24,7 @@ from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, to_dict, to_yaml
 from shield_nav.baselines import EXPERTS
-from shield_nav.provenance import package_versions
+from shield_nav.provenance import cpu_model, cpu_simd, package_versions
 from shield_nav.training.checks import check_files
 from shield_nav.training.config import (
     CHECKPOINT_FORMAT_VERSION,
@@ -51,6 +51,9 @@ class _VersionedSave:
             "tot_time": float(self.logger.tot_time),
             "torch_version": torch.__version__,
             "packages": package_versions(),
+            "cpu_model": cpu_model(),
+            "cpu_simd": cpu_simd(),  # torch, oneDNN and MKL pick kernels by it: another kind trains other bits
+            "cpu_kernels": torch.backends.cpu.get_cpu_capability(),
             "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
         }
         if hasattr(self.env, "curriculum_levels"):
@@ -343,7 +346,8 @@ def train(
     _check_encoder_widths(cfg, resume)
     threads = configure_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed + rank)
-    print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; device {device}", flush=True)
+    print(f"[train] torch {torch.__version__}: {threads} intra-op thread(s), 1 inter-op; CPU kernels "
+          f"{torch.backends.cpu.get_cpu_capability()}; device {device}", flush=True)  # fmt: skip
 
     if run_dir is not None:
         os.makedirs(run_dir, exist_ok=True)

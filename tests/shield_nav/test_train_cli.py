@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from envs.config import stored_config
+from shield_nav.provenance import cpu_model, cpu_simd
 from shield_nav.training import CHECKPOINT_FORMAT_VERSION, TrainConfig, load_train_config, read_checkpoint_infos
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -55,6 +56,8 @@ def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_pat
     assert infos["format_version"] == CHECKPOINT_FORMAT_VERSION
     assert infos["config"]["env"]["num_envs"] == 4 and infos["config"]["name"] == "quick"
     assert infos["packages"]["torch"] == torch.__version__ and infos["packages"]["numpy"] == np.__version__
+    assert infos["cpu_model"] == cpu_model() and infos["cpu_simd"] == cpu_simd()
+    assert infos["cpu_kernels"] == torch.backends.cpu.get_cpu_capability()  # e.g. AVX2 / AVX512
     assert torch.load(os.path.join(run, "model_1.pt"), weights_only=False)["iter"] == 1
 
     # The exported actor runs in onnxruntime on the env's shapes with an explicit GRU state.

@@ -19,8 +19,16 @@ def parser(name: str, description: str) -> argparse.ArgumentParser:
 
 
 def machine() -> dict:
-    """Facts that make a timing comparable: CPU count, Python, platform, libgomp's spin count (shield_nav/openmp.py)."""
+    """Facts that make a timing comparable: the processor, CPU count, Python, platform, libgomp's spin count.
+
+    The processor's model and SIMD extensions are there because machines of one name differ in them (2026-12-01);
+    the spin count is shield_nav/openmp.py's.
+    """
+    from shield_nav.provenance import cpu_model, cpu_simd
+
     return {
+        "cpu_model": cpu_model(),
+        "cpu_simd": cpu_simd(),
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),
         "machine": platform.machine(),

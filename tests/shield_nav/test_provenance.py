@@ -1,5 +1,6 @@
 """Package versions recorded with every evaluation and checkpoint (shield_nav.provenance)."""
 
+import os
 import platform
 
 import mujoco
@@ -85,3 +86,12 @@ def test_manifest_record_adds_simd_only_where_recorded():
     assert version_differences(manifest_record({"packages": pk, "cpu_simd": "avx avx2 fma"}), new) == {
         "cpu_simd": ["avx avx2 fma", "avx avx2 fma avx512f"]
     }
+
+
+def test_bench_machine_facts_name_the_processor():
+    """Every bench JSON carries the processor beside the timings (machines named alike differ in SIMD)."""
+    from shield_nav.bench.common import machine
+
+    facts = machine()
+    assert facts["cpu_model"] == cpu_model() and facts["cpu_simd"] == cpu_simd()
+    assert facts["cpu_count"] == os.cpu_count() and facts["machine"] == platform.machine()

@@ -226,18 +226,10 @@ def _widened(weights: dict, model: Any, what: str) -> dict:
         print(f"[train] {what} state widened from {mean.shape[-1]} to {model.obs_dim} values "
               f"(new inputs start at zero weight)", flush=True)  # fmt: skip
         weights = expand_state_inputs(weights, model)
-    if not hasattr(model, "encoder"):
-        return weights
-    before = [int(v.shape[0]) for k, v in weights.items() if k.startswith("encoder.") and k.endswith(".weight")]
-    after = [int(v.shape[0]) for k, v in model.state_dict().items()
-             if k.startswith("encoder.") and k.endswith(".weight")]  # fmt: skip
-    if len(before) == len(after) and any(b > a for b, a in zip(before, after, strict=True)):
-        raise ConfigError(
-            f"config key 'runner.actor.cnn_channels' / 'cnn_feature_dim': the checkpoint's depth encoder has "
-            f"{before[:-1]} channels and {before[-1]} features, this {what} {after[:-1]} and {after[-1]}; "
-            f"set them to the checkpoint's (or wider)"
-        )
-    if encoder_is_wider(weights, model):
+    if hasattr(model, "encoder") and encoder_is_wider(weights, model):  # a wider checkpoint: _check_encoder_widths
+        before = [int(v.shape[0]) for k, v in weights.items() if k.startswith("encoder.") and k.endswith(".weight")]
+        after = [int(v.shape[0]) for k, v in model.state_dict().items()
+                 if k.startswith("encoder.") and k.endswith(".weight")]  # fmt: skip
         print(f"[train] {what} depth encoder widened from {before} to {after} channels / features "
               f"(new ones start at zero outgoing weight)", flush=True)  # fmt: skip
         weights = widen_encoder(weights, model)

@@ -266,14 +266,15 @@ def widen_encoder(state_dict: dict[str, torch.Tensor], model: DepthGRUModel) -> 
     return out
 
 
+def encoder_widths(state_dict: dict[str, torch.Tensor]) -> list[int]:
+    """A depth encoder's widths from its weights: each convolution's output channels, then the image features."""
+    return [int(v.shape[0]) for k, v in state_dict.items() if k.startswith("encoder.") and k.endswith(".weight")]
+
+
 def encoder_is_wider(state_dict: dict[str, torch.Tensor], model: DepthGRUModel) -> bool:
     """Whether ``model``'s depth encoder has more channels or image features than the state dict's."""
-    own = model.state_dict()
-    return any(
-        k in state_dict and own[k].shape[0] > state_dict[k].shape[0]
-        for k in own
-        if k.startswith("encoder.") and k.endswith(".weight")
-    )
+    old, new = encoder_widths(state_dict), encoder_widths(model.state_dict())
+    return len(old) == len(new) and any(n > o for o, n in zip(old, new, strict=True))
 
 
 class DepthGRUModel(MLPModel):

@@ -219,7 +219,7 @@ def _widened(weights: dict, model: Any, what: str) -> dict:
     the old filters and reads its new ones through zero weights (:func:`shield_nav.models.widen_encoder`). Either
     way the model acts as the one it starts from. Otherwise ``weights`` unchanged.
     """
-    from shield_nav.models import encoder_is_wider, expand_state_inputs, widen_encoder
+    from shield_nav.models import encoder_is_wider, encoder_widths, expand_state_inputs, widen_encoder
 
     mean = weights.get("obs_normalizer._mean")
     if mean is not None and hasattr(model, "obs_dim") and mean.shape[-1] < model.obs_dim:
@@ -227,9 +227,7 @@ def _widened(weights: dict, model: Any, what: str) -> dict:
               f"(new inputs start at zero weight)", flush=True)  # fmt: skip
         weights = expand_state_inputs(weights, model)
     if hasattr(model, "encoder") and encoder_is_wider(weights, model):  # a wider checkpoint: _check_encoder_widths
-        before = [int(v.shape[0]) for k, v in weights.items() if k.startswith("encoder.") and k.endswith(".weight")]
-        after = [int(v.shape[0]) for k, v in model.state_dict().items()
-                 if k.startswith("encoder.") and k.endswith(".weight")]  # fmt: skip
+        before, after = encoder_widths(weights), encoder_widths(model.state_dict())
         print(f"[train] {what} depth encoder widened from {before} to {after} channels / features "
               f"(new ones start at zero outgoing weight)", flush=True)  # fmt: skip
         weights = widen_encoder(weights, model)
@@ -242,12 +240,14 @@ def _check_encoder_widths(cfg: TrainConfig, resume: str | os.PathLike | None) ->
     The widths are read from the checkpoint's convolution and projection weights: output channels per layer, then
     the image features. A narrower checkpoint is widened at load (:func:`_widened`); a wider one cannot be.
     """
+    from shield_nav.models import encoder_widths
+
     path = cfg.runner.student_init or cfg.runner.actor_init
     if resume is not None or not path or "cnn_channels" not in dataclasses.asdict(cfg.runner.actor):
         return
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
     weights = ckpt.get("student_state_dict") or ckpt.get("actor_state_dict") or {}
-    before = [int(v.shape[0]) for k, v in weights.items() if k.startswith("encoder.") and k.endswith(".weight")]
+    before = encoder_widths(weights)
     after = [*(int(c) for c in cfg.runner.actor.cnn_channels), int(cfg.runner.actor.cnn_feature_dim)]
     if len(before) == len(after) and any(b > a for b, a in zip(before, after, strict=True)):
         raise ConfigError(

@@ -231,13 +231,18 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     np.testing.assert_allclose(act, ref.numpy(), atol=1e-5)
 
 
-def test_actor_init_widens_a_narrower_actor_onto_a_clock_input_and_the_deadline_terminates(tmp_path):
-    """PPO from a 21-value actor onto ``[depth, state, clock]``: the clock enters through zero weights."""
+def tiny_actor(tmp_path):
+    """A one-iteration TINY PPO run's checkpoint path and actor weights (the source of a warm start)."""
     root = str(tmp_path / "logs")
     res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root])
     assert res.returncode == 0, res.stderr[-3000:]
     src_path = os.path.join(only_run_dir(root), "model_0.pt")
-    src = torch.load(src_path, weights_only=False)["actor_state_dict"]
+    return src_path, torch.load(src_path, weights_only=False)["actor_state_dict"]
+
+
+def test_actor_init_widens_a_narrower_actor_onto_a_clock_input_and_the_deadline_terminates(tmp_path):
+    """PPO from a 21-value actor onto ``[depth, state, clock]``: the clock enters through zero weights."""
+    src_path, src = tiny_actor(tmp_path)
     root2 = str(tmp_path / "logs2")
     res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root2, "--set", "env.episode.deadline=terminate",
                      "env.episode.clock_input=true", "runner.obs_groups.actor=[depth,state,clock]",
@@ -260,11 +265,7 @@ def test_actor_init_widens_a_narrower_actor_onto_a_clock_input_and_the_deadline_
 
 def test_actor_init_widens_a_narrower_depth_encoder_and_refuses_a_wider_one(tmp_path):
     """PPO from the 8-16-32 / 64 encoder onto 12-16-48 / 80: it flies as the source; the other way is a clear error."""
-    root = str(tmp_path / "logs")
-    res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root])
-    assert res.returncode == 0, res.stderr[-3000:]
-    src_path = os.path.join(only_run_dir(root), "model_0.pt")
-    src = torch.load(src_path, weights_only=False)["actor_state_dict"]
+    src_path, src = tiny_actor(tmp_path)
     wide = ["runner.actor.cnn_channels=[12,16,48]", "runner.actor.cnn_feature_dim=80"]
     root2 = str(tmp_path / "logs2")
     res = run_train([*TINY, "--max-iterations", "1", "--log-dir", root2, "--set", *wide,

@@ -4,9 +4,10 @@ onnxruntime and torch pick their convolution and matrix kernels by the processor
 sums its products in its own order: the same policy file gives actions that differ in the last bits from one
 processor kind to another, and closed-loop flight grows such differences into other trajectories (13-16 of 100
 trials end otherwise when only the network's kernels change; docs/evaluation.md, "Reproducing a table"). This module
-runs the same weights (read from the TorchScript export ``policy.pt``) with plain loops compiled by numba without
-``fastmath``: every sum runs in one written order in float64, no operation is fused or reassociated, and the
-exponential is this module's own polynomial (libm's may differ between its FMA and non-FMA variants). So the
+runs the same weights (read from the TorchScript export ``policy.pt``, or from a training checkpoint ``model*.pt``
+through :func:`shield_nav.package.actor_from_checkpoint`, which needs no TorchScript) with plain loops compiled by
+numba without ``fastmath``: every sum runs in one written order in float64, no operation is fused or reassociated,
+and the exponential is this module's own polynomial (libm's may differ between its FMA and non-FMA variants). So the
 actions are the same bits on every processor numba compiles for; the test suite checks that a baseline x86-64 build
 (``NUMBA_CPU_NAME=generic``) gives the host build's bits.
 
@@ -212,13 +213,32 @@ def _f64(t: Any) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
 
 
+def _kind(layer: Any) -> str:
+    """A layer's class name: a TorchScript module keeps it as ``original_name``, an eager one is its type."""
+    name = getattr(layer, "original_name", None)
+    return name if isinstance(name, str) else type(layer).__name__
+
+
+def _children(module: Any) -> list[tuple[str, Any]]:
+    """A module's children in order, repeats included.
+
+    ``named_children`` yields a module shared by two slots once, and rsl-rl's MLP shares one activation module
+    between its layers.
+    """
+    return list(module._modules.items())
+
+
 def _t(weight: Any) -> np.ndarray:
     """A Linear weight (outputs, inputs) as float64 (inputs, outputs), the layout :func:`_affine` reads."""
     return np.ascontiguousarray(_f64(weight).T)
 
 
 class FixedOrderActor:
-    """The layers of a TorchScript ``DepthGRUModel`` export, run by :mod:`numba` loops in one fixed order.
+    """The layers of a ``DepthGRUModel`` export, run by :mod:`numba` loops in one fixed order.
+
+    The export is the TorchScript file's module (``torch.jit.load``) or the eager
+    :class:`~shield_nav.models.ExportedDepthGRU` of a training checkpoint (:meth:`from_checkpoint`); both hold the
+    same parameters, so both give the same bits.
 
     ``forward(state (N, S), depth (N, C, H, W), h (L, N, Hd)) -> (head (N, K * (A + 1)) or (N, A), h_out)``,
     float64 throughout; :meth:`act` adds the hypothesis selection (the best-scored candidate, the first on ties, as
@@ -226,7 +246,7 @@ class FixedOrderActor:
     """
 
     def __init__(self, module: Any, file: str) -> None:
-        """Read the weights of a TorchScript export ``module`` (``torch.jit.load``); ``file`` names it in errors."""
+        """Read the weights of an export ``module`` (TorchScript or eager); ``file`` names it in errors."""
         self.file = file
 
         def refuse(what: str) -> None:
@@ -238,17 +258,17 @@ class FixedOrderActor:
             if not hasattr(module, attr):
                 refuse(f"no {attr!r} submodule")
         norm = module.obs_normalizer
-        if norm.original_name == "EmpiricalNormalization":
+        if _kind(norm) == "EmpiricalNormalization":
             self.norm = (_f64(norm._mean).reshape(-1), _f64(norm._std).reshape(-1), float(norm.eps))
-        elif norm.original_name == "Identity":
+        elif _kind(norm) == "Identity":
             self.norm = None
         else:
-            refuse(f"a state normaliser {norm.original_name!r}")
-        if module.deterministic_output.original_name != "_IdentityDeterministicOutput":
-            refuse(f"an output transform {module.deterministic_output.original_name!r}")
+            refuse(f"a state normaliser {_kind(norm)!r}")
+        if _kind(module.deterministic_output) != "_IdentityDeterministicOutput":
+            refuse(f"an output transform {_kind(module.deterministic_output)!r}")
         self.convs: list[_Conv] = []
-        for name, layer in module.encoder.conv.named_children():
-            kind = layer.original_name
+        for name, layer in _children(module.encoder.conv):
+            kind = _kind(layer)
             if kind == "Conv2d":
                 if tuple(layer.dilation) != (1, 1) or layer.groups != 1 or layer.padding_mode != "zeros":
                     refuse(f"a dilated, grouped or non-zero-padded convolution (encoder.conv.{name})")
@@ -266,7 +286,7 @@ class FixedOrderActor:
                 self.convs[-1].pool = True
             else:
                 refuse(f"a layer {kind!r} at encoder.conv.{name}")
-        proj = [c.original_name for _, c in module.encoder.proj.named_children()]
+        proj = [_kind(c) for _, c in _children(module.encoder.proj)]
         if proj != ["Flatten", "Linear", "ReLU"]:
             refuse(f"an encoder projection {proj}")
         lin = getattr(module.encoder.proj, "1")
@@ -277,11 +297,11 @@ class FixedOrderActor:
             g = module.gru
             self.gru.append((_t(getattr(g, f"weight_ih_l{k}")), _t(getattr(g, f"weight_hh_l{k}")),
                              _f64(getattr(g, f"bias_ih_l{k}")), _f64(getattr(g, f"bias_hh_l{k}"))))  # fmt: skip
-        heads = dict(module.mlp.named_children())
-        core = heads.get("0") if "0" in heads and heads["0"].original_name == "MLP" else module.mlp
+        heads = dict(_children(module.mlp))
+        core = heads.get("0") if "0" in heads and _kind(heads["0"]) == "MLP" else module.mlp
         self.mlp: list[tuple[np.ndarray, np.ndarray, int]] = []
-        for name, layer in core.named_children():
-            kind = layer.original_name
+        for name, layer in _children(core):
+            kind = _kind(layer)
             if kind == "Linear":
                 self.mlp.append((_t(layer.weight), _f64(layer.bias), 0))
             elif kind in ACTIVATIONS and self.mlp and self.mlp[-1][2] == 0:
@@ -290,12 +310,29 @@ class FixedOrderActor:
             else:
                 refuse(f"a head layer {kind!r} ({name})")
         select = heads.get("1") if core is not module.mlp else None
-        if select is not None and select.original_name != "HypothesisSelect":
-            refuse(f"a head selection {select.original_name!r}")
+        if select is not None and _kind(select) != "HypothesisSelect":
+            refuse(f"a head selection {_kind(select)!r}")
         self.num_hypotheses = int(select.num_hypotheses) if select is not None else 1
         self.action_dim = int(select.action_dim) if select is not None else int(self.mlp[-1][0].shape[1])
         if select is not None and self.mlp[-1][0].shape[1] != self.num_hypotheses * (self.action_dim + 1):
             refuse(f"a head of {self.mlp[-1][0].shape[1]} outputs for {self.num_hypotheses} hypotheses")
+
+    @classmethod
+    def from_checkpoint(cls, path: str) -> tuple[FixedOrderActor, Any]:
+        """The actor of a training checkpoint ``model*.pt`` (PPO actor or DAgger student) and its eager export.
+
+        Rebuilt from the checkpoint's stored config by :func:`shield_nav.package.actor_from_checkpoint`; no
+        TorchScript is involved. Raises ``ValueError`` for a checkpoint without a deployable depth actor.
+        """
+        from shield_nav.models import ExportedDepthGRU
+        from shield_nav.package import actor_from_checkpoint
+
+        model, _, _ = actor_from_checkpoint(path)
+        if model is None:
+            raise ValueError(f"network 'fixed_order': {path!r} is a privileged teacher's checkpoint (its actor reads "
+                             "the map, not the depth image); it has no depth actor to fly")  # fmt: skip
+        module = ExportedDepthGRU(model).eval()
+        return cls(module, path), module
 
     def forward(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The head's raw outputs (N, K (A + 1)) and the new hidden state (L, N, Hd), both float64."""

@@ -23,10 +23,10 @@ class PolicyInfo:
     name: str
     """Checkpoint name."""
     path: str
-    """The file that runs (``.onnx`` or TorchScript ``.pt``)."""
+    """The file that runs (``.onnx``, TorchScript ``.pt``, or with ``fixed_order`` a training checkpoint ``.pt``)."""
     kind: str
-    """``onnx``, ``torchscript`` or ``fixed_order`` (the TorchScript file's weights run by
-    :mod:`shield_nav.evaluation.fixed_order`)."""
+    """``onnx``, ``torchscript`` or ``fixed_order`` (the weights of the TorchScript file, or of a training checkpoint,
+    run by :mod:`shield_nav.evaluation.fixed_order`)."""
     sha256: str
     """SHA-256 of that file."""
     obs_dim: int
@@ -281,7 +281,9 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
     graph's inputs are told apart by rank (state (B, S), depth (B, C, H, W), hidden (L, B, Hd)) and its outputs
     by rank (actions (B, A), hidden), so the names are read from the model rather than assumed. With ``network``
     ``fixed_order`` the TorchScript export's weights are run by :class:`~shield_nav.evaluation.fixed_order.
-    FixedOrderActor` instead (the ``policy.pt`` beside an ONNX file).
+    FixedOrderActor` instead (the ``policy.pt`` beside an ONNX file); ``path`` may then also be a training checkpoint
+    ``model*.pt``, whose actor is rebuilt from its stored config without TorchScript (the same weights, so the same
+    bits as its export).
 
     Raises:
         EvalError: missing file, a training checkpoint instead of an export, an unreadable model, or a network the
@@ -323,6 +325,18 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
         info = PolicyInfo(name, file, "onnx", _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
                           cfg_path, speeds, train_env, groups)  # fmt: skip
         return LoadedPolicy(info, sess, names)
+    if network == "fixed_order" and _is_training_checkpoint(file):
+        from shield_nav.evaluation.fixed_order import FixedOrderActor
+
+        try:
+            runner, mod = FixedOrderActor.from_checkpoint(file)
+        except Exception as err:  # re-raised with the file and the cause: a bad checkpoint stops the run here
+            raise EvalError(f"checkpoint {name!r}: {file!r} did not rebuild as a depth actor: "
+                            f"{type(err).__name__}: {err}") from None  # fmt: skip
+        info = PolicyInfo(name, file, "fixed_order", _sha256(file), int(mod.obs_dim),
+                          tuple(int(v) for v in mod.depth_shape), int(mod.num_layers), int(mod.hidden_size),
+                          cfg_path, speeds, train_env, groups)  # fmt: skip
+        return LoadedPolicy(info, runner)
     import torch
 
     try:
@@ -348,6 +362,21 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
     return LoadedPolicy(info, runner)
 
 
+def _is_training_checkpoint(file: str) -> bool:
+    """Whether ``file`` is a ``torch.save`` archive (a training checkpoint) rather than a TorchScript export."""
+    import zipfile
+
+    if not file.endswith(".pt") or not zipfile.is_zipfile(file):
+        return False
+    try:
+        with zipfile.ZipFile(file) as z:
+            names = z.namelist()
+    except (zipfile.BadZipFile, OSError, EOFError):
+        return False
+    torchscript = any(n.endswith("/constants.pkl") or n.endswith("/code/__torch__.py") for n in names)
+    return not torchscript and any(n.endswith("/data.pkl") for n in names)
+
+
 def _torch_file_problem(file: str, name: str, err: Exception) -> str:
     """Why a ``.pt`` file did not load as TorchScript: truncated/corrupt, a training checkpoint, or something else."""
     import zipfile
@@ -367,7 +396,8 @@ def _torch_file_problem(file: str, name: str, err: Exception) -> str:
         if any(n.endswith("/constants.pkl") or n.endswith("/code/__torch__.py") for n in z.namelist()):
             return f"checkpoint {name!r}: {file!r} is a TorchScript archive that failed to load: {err}"
     return (f"checkpoint {name!r}: {file!r} is not a TorchScript export ({type(err).__name__}); a training "
-            "checkpoint (model_<it>.pt) cannot be run directly: use the exported policy.onnx or policy.pt")  # fmt: skip
+            "checkpoint (model_<it>.pt) runs only with network 'fixed_order' (the default); with network 'export' "
+            "use the exported policy.onnx or policy.pt")  # fmt: skip
 
 
 class LoadedTeacher:

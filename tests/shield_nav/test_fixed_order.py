@@ -13,7 +13,7 @@ import pytest
 
 from envs.config import ConfigError
 from shield_nav import evaluation as E
-from shield_nav.evaluation.fixed_order import FixedOrderActor, fixed_exp
+from shield_nav.evaluation.fixed_order import ACTIVATIONS, FixedOrderActor, fixed_exp
 
 torch = pytest.importorskip("torch")
 
@@ -82,6 +82,46 @@ def test_fixed_order_actor_equals_the_torchscript_export(tmp_path, k):
         np.testing.assert_array_equal(chosen, a_fix)
         np.testing.assert_array_equal(h1, h_fix)
         np.testing.assert_allclose(others, o_jit, atol=2e-6)
+
+
+@pytest.mark.parametrize("name", ["full", "student"])
+def test_a_training_checkpoint_flies_with_the_bits_of_its_export(name):
+    """The shipped policy's training checkpoint (model.pt, actor rebuilt from its stored config, no TorchScript) and
+    its TorchScript export (policy.pt, read independently) give the same bits over three chained steps, all three
+    candidates included: the fixed-order runtime does not need TorchScript."""
+    folder = os.path.join(ROOT, "checkpoints", name)
+    via_jit = E.load_policy(os.path.join(folder, "policy.pt"), "jit", network="fixed_order")
+    via_ckpt = E.load_policy(os.path.join(folder, "model.pt"), "ckpt", network="fixed_order")
+    assert via_ckpt.info.kind == "fixed_order" and via_ckpt.info.path.endswith("model.pt")
+    layout = ("obs_dim", "depth_shape", "num_layers", "hidden_size")
+    assert [getattr(via_ckpt.info, k) for k in layout] == [getattr(via_jit.info, k) for k in layout]
+    assert via_ckpt.info.train_speeds == via_jit.info.train_speeds == (3.0, 9.0)
+    assert via_ckpt.info.train_env == via_jit.info.train_env and via_ckpt.info.state_groups == via_jit.info.state_groups
+    assert via_ckpt.num_hypotheses() == via_jit.num_hypotheses() == 3
+    rng = np.random.default_rng(7)
+    state = rng.normal(size=(4, via_jit.info.obs_dim)).astype(np.float32)
+    depth = rng.uniform(0.0, 1.0, size=(4, *via_jit.info.depth_shape)).astype(np.float32)
+    h_a = h_b = via_jit.initial_state(4)
+    for _ in range(3):
+        c_a, o_a, h_a = via_jit.step_hypotheses(state, depth, h_a)
+        c_b, o_b, h_b = via_ckpt.step_hypotheses(state, depth, h_b)
+        assert np.array_equal(c_a.view(np.int64), c_b.view(np.int64))
+        assert np.array_equal(o_a.view(np.int64), o_b.view(np.int64))
+        assert np.array_equal(np.asarray(h_a, np.float64).view(np.int64), np.asarray(h_b, np.float64).view(np.int64))
+        assert np.abs(np.asarray(h_a)).max() > 0  # the recurrent state moves, so the chain tests the GRU too
+
+
+def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
+    """rsl-rl's MLP puts one activation module in each of its slots; ``named_children`` yields a shared module once,
+    which would drop the second ELU. The actor read from an eager export has an ELU after each hidden layer, as the
+    TorchScript file of the same weights has."""
+    _, module = FixedOrderActor.from_checkpoint(os.path.join(ROOT, "checkpoints", "student", "model.pt"))
+    core = dict(module.mlp.named_children())["0"]
+    assert len(list(core.named_children())) < len(core._modules)  # the sharing this test is about
+    fixed = FixedOrderActor(module, "student")
+    jit = FixedOrderActor(torch.jit.load(os.path.join(ROOT, "checkpoints", "student", "policy.pt")), "student")
+    assert [act for _, _, act in fixed.mlp] == [act for _, _, act in jit.mlp]
+    assert [act for _, _, act in fixed.mlp][:-1] == [ACTIVATIONS["ELU"]] * (len(fixed.mlp) - 1)
 
 
 _SCRIPT = """

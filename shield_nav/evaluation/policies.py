@@ -362,6 +362,11 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
     return LoadedPolicy(info, runner)
 
 
+def _has_torchscript_code(names: list[str]) -> bool:
+    """Whether a torch zip archive's member ``names`` are a TorchScript export's (compiled code and constants)."""
+    return any(n.endswith("/constants.pkl") or n.endswith("/code/__torch__.py") for n in names)
+
+
 def _is_training_checkpoint(file: str) -> bool:
     """Whether ``file`` is a ``torch.save`` archive (a training checkpoint) rather than a TorchScript export."""
     import zipfile
@@ -373,8 +378,7 @@ def _is_training_checkpoint(file: str) -> bool:
             names = z.namelist()
     except (zipfile.BadZipFile, OSError, EOFError):
         return False
-    torchscript = any(n.endswith("/constants.pkl") or n.endswith("/code/__torch__.py") for n in names)
-    return not torchscript and any(n.endswith("/data.pkl") for n in names)
+    return not _has_torchscript_code(names) and any(n.endswith("/data.pkl") for n in names)
 
 
 def _torch_file_problem(file: str, name: str, err: Exception) -> str:
@@ -393,7 +397,7 @@ def _torch_file_problem(file: str, name: str, err: Exception) -> str:
         return (f"checkpoint {name!r}: {file!r} ({size} bytes) is truncated or corrupt: not a complete torch archive "
                 "(an interrupted copy or save?); re-copy or re-export it")  # fmt: skip
     with zipfile.ZipFile(file) as z:
-        if any(n.endswith("/constants.pkl") or n.endswith("/code/__torch__.py") for n in z.namelist()):
+        if _has_torchscript_code(z.namelist()):
             return f"checkpoint {name!r}: {file!r} is a TorchScript archive that failed to load: {err}"
     return (f"checkpoint {name!r}: {file!r} is not a TorchScript export ({type(err).__name__}); a training "
             "checkpoint (model_<it>.pt) runs only with network 'fixed_order' (the default); with network 'export' "

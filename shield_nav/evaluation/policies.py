@@ -261,17 +261,19 @@ def _dim(value: Any, what: str, path: str) -> int:
 def _find_torchscript(file: str, name: str) -> str:
     """The TorchScript export that ``network: fixed_order`` reads.
 
-    ``file`` itself, or the ``policy.pt`` beside an ONNX file (or in an ``exported/`` folder beside it).
+    ``file`` itself, or the ``policy.pt`` beside an ONNX file (or in an ``exported/`` folder beside it); without one,
+    the training checkpoint ``model.pt`` of a packaged folder (``checkpoints/<name>/``), whose actor
+    :func:`load_policy` rebuilds without TorchScript.
     """
     if file.endswith(".pt"):
         return file
     d = os.path.dirname(os.path.abspath(file))
-    for cand in (os.path.join(d, "policy.pt"), os.path.join(d, "exported", "policy.pt")):
+    for cand in (os.path.join(d, "policy.pt"), os.path.join(d, "exported", "policy.pt"), os.path.join(d, "model.pt")):
         if os.path.isfile(cand):
             return cand
-    raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt, and there "
-                    f"is none beside {file!r}; point --checkpoint at a policy.pt or fly the ONNX file with --set "
-                    "network=export")  # fmt: skip
+    raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt (or a "
+                    f"packaged model.pt), and there is neither beside {file!r}; point --checkpoint at a policy.pt or "
+                    "a training checkpoint model_<it>.pt, or fly the ONNX file with --set network=export")  # fmt: skip
 
 
 def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "export") -> LoadedPolicy:

@@ -111,6 +111,23 @@ def test_a_training_checkpoint_flies_with_the_bits_of_its_export(name):
         assert np.abs(np.asarray(h_a)).max() > 0  # the recurrent state moves, so the chain tests the GRU too
 
 
+def test_a_packaged_folder_without_its_torchscript_file_flies_from_its_checkpoint(tmp_path):
+    """A packaged folder whose policy.pt is gone (or was never written) flies its model.pt with the same bits."""
+    import shutil
+
+    src = os.path.join(ROOT, "checkpoints", "student")
+    folder = tmp_path / "student"
+    shutil.copytree(src, folder, ignore=shutil.ignore_patterns("policy.pt"))
+    assert not (folder / "policy.pt").exists()
+    via_ckpt = E.load_policy(str(folder), "ckpt", network="fixed_order")
+    assert via_ckpt.info.path == str(folder / "model.pt") and via_ckpt.info.kind == "fixed_order"
+    via_jit = E.load_policy(os.path.join(src, "policy.pt"), "jit", network="fixed_order")
+    state, depth = np.full((2, 21), 0.1, np.float32), np.full((2, 1, 60, 100), 0.5, np.float32)
+    a_ckpt, _ = via_ckpt.step(state, depth, via_ckpt.initial_state(2))
+    a_jit, _ = via_jit.step(state, depth, via_jit.initial_state(2))
+    assert np.array_equal(a_ckpt.view(np.int64), a_jit.view(np.int64))
+
+
 def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
     """rsl-rl's MLP puts one activation module in each of its slots; ``named_children`` yields a shared module once,
     which would drop the second ELU. The actor read from an eager export has an ELU after each hidden layer, as the
@@ -170,7 +187,7 @@ def test_what_the_fixed_order_runtime_does_not_run_is_refused_by_name(tmp_path):
     lone = tmp_path / "lone"
     lone.mkdir()
     os.replace(paths["onnx"], lone / "policy.onnx")
-    with pytest.raises(E.EvalError, match="network 'fixed_order' reads the TorchScript export policy.pt"):
+    with pytest.raises(E.EvalError, match=r"reads the TorchScript export policy.pt \(or a packaged model.pt\)"):
         E.load_policy(lone / "policy.onnx", "p", network="fixed_order")
     with pytest.raises(ConfigError, match="config key 'network': 'fast'; known"):
         E.load_eval_config(None, ["network=fast"])

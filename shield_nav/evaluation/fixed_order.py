@@ -237,8 +237,8 @@ class FixedOrderActor:
     """The layers of a ``DepthGRUModel`` export, run by :mod:`numba` loops in one fixed order.
 
     The export is the TorchScript file's module (``torch.jit.load``) or the eager
-    :class:`~shield_nav.models.ExportedDepthGRU` of a training checkpoint (:meth:`from_checkpoint`); both hold the
-    same parameters, so both give the same bits.
+    :class:`~shield_nav.models.ExportedDepthGRU` of a training checkpoint (what ``load_policy`` builds for a
+    ``model*.pt``); both hold the same parameters, so both give the same bits.
 
     ``forward(state (N, S), depth (N, C, H, W), h (L, N, Hd)) -> (head (N, K * (A + 1)) or (N, A), h_out)``,
     float64 throughout; :meth:`act` adds the hypothesis selection (the best-scored candidate, the first on ties, as
@@ -316,23 +316,6 @@ class FixedOrderActor:
         self.action_dim = int(select.action_dim) if select is not None else int(self.mlp[-1][0].shape[1])
         if select is not None and self.mlp[-1][0].shape[1] != self.num_hypotheses * (self.action_dim + 1):
             refuse(f"a head of {self.mlp[-1][0].shape[1]} outputs for {self.num_hypotheses} hypotheses")
-
-    @classmethod
-    def from_checkpoint(cls, path: str) -> tuple[FixedOrderActor, Any]:
-        """The actor of a training checkpoint ``model*.pt`` (PPO actor or DAgger student) and its eager export.
-
-        Rebuilt from the checkpoint's stored config by :func:`shield_nav.package.actor_from_checkpoint`; no
-        TorchScript is involved. Raises ``ValueError`` for a checkpoint without a deployable depth actor.
-        """
-        from shield_nav.models import ExportedDepthGRU
-        from shield_nav.package import actor_from_checkpoint
-
-        model, _, _ = actor_from_checkpoint(path)
-        if model is None:
-            raise ValueError(f"network 'fixed_order': {path!r} is a privileged teacher's checkpoint (its actor reads "
-                             "the map, not the depth image); it has no depth actor to fly")  # fmt: skip
-        module = ExportedDepthGRU(model).eval()
-        return cls(module, path), module
 
     def forward(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The head's raw outputs (N, K (A + 1)) and the new hidden state (L, N, Hd), both float64."""

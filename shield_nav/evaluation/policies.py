@@ -328,23 +328,14 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
                           cfg_path, speeds, train_env, groups)  # fmt: skip
         return LoadedPolicy(info, sess, names)
     if network == "fixed_order" and _is_training_checkpoint(file):
-        from shield_nav.evaluation.fixed_order import FixedOrderActor
+        mod = _checkpoint_export(file, name)
+    else:
+        import torch
 
         try:
-            runner, mod = FixedOrderActor.from_checkpoint(file)
-        except Exception as err:  # re-raised with the file and the cause: a bad checkpoint stops the run here
-            raise EvalError(f"checkpoint {name!r}: {file!r} did not rebuild as a depth actor: "
-                            f"{type(err).__name__}: {err}") from None  # fmt: skip
-        info = PolicyInfo(name, file, "fixed_order", _sha256(file), int(mod.obs_dim),
-                          tuple(int(v) for v in mod.depth_shape), int(mod.num_layers), int(mod.hidden_size),
-                          cfg_path, speeds, train_env, groups)  # fmt: skip
-        return LoadedPolicy(info, runner)
-    import torch
-
-    try:
-        mod = torch.jit.load(file, map_location="cpu")
-    except Exception as err:
-        raise EvalError(_torch_file_problem(file, name, err)) from None
+            mod = torch.jit.load(file, map_location="cpu")
+        except Exception as err:
+            raise EvalError(_torch_file_problem(file, name, err)) from None
     try:
         obs_dim, depth_shape = int(mod.obs_dim), tuple(int(v) for v in mod.depth_shape)
         num_layers, hidden = int(mod.num_layers), int(mod.hidden_size)
@@ -362,6 +353,26 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
     info = PolicyInfo(name, file, kind, _sha256(file), obs_dim, depth_shape, num_layers, hidden,  # type: ignore[arg-type]
                       cfg_path, speeds, train_env, groups)  # fmt: skip
     return LoadedPolicy(info, runner)
+
+
+def _checkpoint_export(file: str, name: str) -> Any:
+    """The eager :class:`~shield_nav.models.ExportedDepthGRU` of a training checkpoint's actor or DAgger student.
+
+    Rebuilt from the config stored in the checkpoint: the same weights as its TorchScript export, read without
+    TorchScript.
+    """
+    from shield_nav.models import ExportedDepthGRU
+    from shield_nav.package import actor_from_checkpoint
+
+    try:
+        model, _, _ = actor_from_checkpoint(file)
+    except Exception as err:  # re-raised with the file and the cause: a bad checkpoint stops the run here
+        raise EvalError(f"checkpoint {name!r}: {file!r} did not rebuild as a depth actor: "
+                        f"{type(err).__name__}: {err}") from None  # fmt: skip
+    if model is None:
+        raise EvalError(f"checkpoint {name!r}: {file!r} is a privileged teacher's checkpoint (its actor reads the "
+                        "map, not the depth image); it has no depth actor to fly")  # fmt: skip
+    return ExportedDepthGRU(model)
 
 
 def _has_torchscript_code(names: list[str]) -> bool:

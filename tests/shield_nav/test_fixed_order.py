@@ -132,7 +132,11 @@ def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
     """rsl-rl's MLP puts one activation module in each of its slots; ``named_children`` yields a shared module once,
     which would drop the second ELU. The actor read from an eager export has an ELU after each hidden layer, as the
     TorchScript file of the same weights has."""
-    _, module = FixedOrderActor.from_checkpoint(os.path.join(ROOT, "checkpoints", "student", "model.pt"))
+    from shield_nav.models import ExportedDepthGRU
+    from shield_nav.package import actor_from_checkpoint
+
+    model, _, _ = actor_from_checkpoint(os.path.join(ROOT, "checkpoints", "student", "model.pt"))
+    module = ExportedDepthGRU(model)
     core = dict(module.mlp.named_children())["0"]
     assert len(list(core.named_children())) < len(core._modules)  # the sharing this test is about
     fixed = FixedOrderActor(module, "student")

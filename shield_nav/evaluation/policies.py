@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import glob
 import hashlib
+import json
 import os
 import warnings
 from dataclasses import dataclass
@@ -258,12 +259,16 @@ def _dim(value: Any, what: str, path: str) -> int:
     return value
 
 
+EXPORT_SOURCE_FILE = "source.json"
+"""Written by training beside its exports (``exported/source.json``): the checkpoint they were made from."""
+
+
 def _find_torchscript(file: str, name: str) -> str:
     """The TorchScript export that ``network: fixed_order`` reads.
 
     ``file`` itself, or the ``policy.pt`` beside an ONNX file (or in an ``exported/`` folder beside it); without one,
-    the training checkpoint ``model.pt`` of a packaged folder (``checkpoints/<name>/``), whose actor
-    :func:`load_policy` rebuilds without TorchScript.
+    the training checkpoint ``model.pt`` of a packaged folder (``checkpoints/<name>/``) or the run's checkpoint that
+    ``exported/source.json`` names, whose actor :func:`load_policy` rebuilds without TorchScript.
     """
     if file.endswith(".pt"):
         return file
@@ -271,9 +276,26 @@ def _find_torchscript(file: str, name: str) -> str:
     for cand in (os.path.join(d, "policy.pt"), os.path.join(d, "exported", "policy.pt"), os.path.join(d, "model.pt")):
         if os.path.isfile(cand):
             return cand
+    for src in (os.path.join(d, EXPORT_SOURCE_FILE), os.path.join(d, "exported", EXPORT_SOURCE_FILE)):
+        if os.path.isfile(src):
+            return _export_source_checkpoint(src, name)
     raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt (or a "
                     f"packaged model.pt), and there is neither beside {file!r}; point --checkpoint at a policy.pt or "
                     "a training checkpoint model_<it>.pt, or fly the ONNX file with --set network=export")  # fmt: skip
+
+
+def _export_source_checkpoint(src: str, name: str) -> str:
+    """The run's checkpoint that ``src`` (``<run>/exported/source.json``) names, checked against its sha256."""
+    with open(src) as f:
+        rec = json.load(f)
+    ckpt = os.path.join(os.path.dirname(os.path.dirname(src)), str(rec.get("checkpoint", "")))
+    if not os.path.isfile(ckpt):
+        raise EvalError(f"checkpoint {name!r}: {src} says the export was made from {rec.get('checkpoint')!r}, and "
+                        f"{ckpt!r} does not exist; point --checkpoint at a policy.pt or a model_<it>.pt")  # fmt: skip
+    if _sha256(ckpt) != rec.get("sha256"):
+        raise EvalError(f"checkpoint {name!r}: {ckpt!r} is not the checkpoint the export was made from (sha256 "
+                        f"differs from {src}); point --checkpoint at the checkpoint to fly")  # fmt: skip
+    return ckpt
 
 
 def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "export") -> LoadedPolicy:

@@ -188,6 +188,21 @@ def _new_run_dir(cfg: TrainConfig) -> str:
     return path
 
 
+def _write_export_source(run_dir: str, it: int) -> None:
+    """Record which checkpoint ``exported/`` was made from: ``exported/source.json`` (file name, iteration, sha256).
+
+    ``network: fixed_order`` reads it to fly that checkpoint when the folder's TorchScript ``policy.pt`` is gone
+    (:func:`shield_nav.evaluation.policies.load_policy`). Written only when the checkpoint is on disk.
+    """
+    from shield_nav.evaluation.policies import EXPORT_SOURCE_FILE, _sha256
+    from shield_nav.jsonio import write_json
+
+    ckpt = os.path.join(run_dir, f"model_{it}.pt")
+    if os.path.isfile(ckpt):
+        write_json(os.path.join(run_dir, "exported", EXPORT_SOURCE_FILE),
+                   {"checkpoint": os.path.basename(ckpt), "iteration": it, "sha256": _sha256(ckpt)})  # fmt: skip
+
+
 def _init_student(runner: Any, path: str, device: str) -> dict:
     """Load a checkpoint's student weights into the runner's student; return the checkpoint's ``infos``.
 
@@ -459,6 +474,7 @@ def train(
                       f"shield_nav.package {os.path.join(run_dir, f'model_{it}.pt')} --name <policy name>",
                       file=sys.stderr, flush=True)  # fmt: skip
                 raise
+            _write_export_source(run_dir, it)
             print(f"[train] exported {paths['jit']} and {paths['onnx']}", flush=True)
         else:  # a privileged teacher: not deployable (it reads the local ESDF map), so nothing is exported
             print(f"[train] not exported: the policy is a {type(policy).__name__}, not a DepthGRUModel", flush=True)

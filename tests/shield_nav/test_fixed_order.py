@@ -128,6 +128,36 @@ def test_a_packaged_folder_without_its_torchscript_file_flies_from_its_checkpoin
     assert np.array_equal(a_ckpt.view(np.int64), a_jit.view(np.int64))
 
 
+def test_a_run_export_without_its_torchscript_file_flies_the_checkpoint_its_source_file_names(tmp_path):
+    """Training writes ``exported/source.json`` (the checkpoint's name and sha256). A run folder whose
+    ``exported/policy.pt`` is gone flies that checkpoint; a checkpoint that is missing or changed is refused."""
+    import hashlib
+    import shutil
+
+    src = os.path.join(ROOT, "checkpoints", "full")
+    run = tmp_path / "run"
+    (run / "exported").mkdir(parents=True)
+    shutil.copy(os.path.join(src, "model.pt"), run / "model_299.pt")
+    shutil.copy(os.path.join(src, "policy.onnx"), run / "exported" / "policy.onnx")
+    digest = hashlib.sha256((run / "model_299.pt").read_bytes()).hexdigest()
+    record = {"checkpoint": "model_299.pt", "iteration": 299, "sha256": digest}
+    (run / "exported" / "source.json").write_text(json.dumps(record))
+    via_src = E.load_policy(str(run / "exported" / "policy.onnx"), "run", network="fixed_order")
+    assert via_src.info.path == str(run / "model_299.pt")
+    via_jit = E.load_policy(os.path.join(src, "policy.pt"), "jit", network="fixed_order")
+    state, depth = np.full((2, 21), 0.1, np.float32), np.full((2, 1, 60, 100), 0.5, np.float32)
+    a_src, _ = via_src.step(state, depth, via_src.initial_state(2))
+    a_jit, _ = via_jit.step(state, depth, via_jit.initial_state(2))
+    assert np.array_equal(a_src.view(np.int64), a_jit.view(np.int64))
+
+    (run / "exported" / "source.json").write_text(json.dumps({**record, "sha256": "0" * 64}))
+    with pytest.raises(E.EvalError, match="not the checkpoint the export was made from"):
+        E.load_policy(str(run / "exported" / "policy.onnx"), "run", network="fixed_order")
+    (run / "exported" / "source.json").write_text(json.dumps({**record, "checkpoint": "model_300.pt"}))
+    with pytest.raises(E.EvalError, match="'model_300.pt'.*does not exist"):
+        E.load_policy(str(run), "run", network="fixed_order")
+
+
 def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
     """rsl-rl's MLP puts one activation module in each of its slots; ``named_children`` yields a shared module once,
     which would drop the second ELU. The actor read from an eager export has an ELU after each hidden layer, as the

@@ -1,6 +1,8 @@
 """train.py end to end (subprocess, the real task with 4 envs on 2 scenes): run folder, resume, bad keys, SIGTERM."""
 
 import dataclasses
+import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -68,6 +70,11 @@ def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_pat
         None, {"obs": np.zeros((2, state_dim), np.float32), "depth": np.ones((2, 1, 60, 100), np.float32), "h_in": h}
     )
     assert act.shape == (2, 4) and np.isfinite(act).all() and h.shape == (1, 2, 128)
+    # exported/source.json names the checkpoint the export was made from, with its sha256.
+    with open(os.path.join(run, "exported", "source.json")) as f:
+        source = json.load(f)
+    with open(os.path.join(run, "model_1.pt"), "rb") as f:
+        assert source == {"checkpoint": "model_1.pt", "iteration": 1, "sha256": hashlib.sha256(f.read()).hexdigest()}
 
     # Resume: same folder, iteration count and curves continue at 2.
     res = run_train(["--resume", os.path.join(run, "model_1.pt"), "--max-iterations", "3"])
@@ -78,6 +85,8 @@ def test_quick_run_writes_events_checkpoint_exports_and_resume_continues(tmp_pat
     assert only_run_dir(root) == run
     ckpt = torch.load(os.path.join(run, "model_2.pt"), weights_only=False)
     assert ckpt["iter"] == 2
+    with open(os.path.join(run, "exported", "source.json")) as f:
+        assert json.load(f)["checkpoint"] == "model_2.pt"  # the resumed run's export
     assert ckpt["infos"]["tot_timesteps"] == 3 * 4 * 8  # 3 iterations x 4 envs x 8 steps, across both processes
     assert scalar_steps(run, "Loss/value") == [0, 1, 2]
 

@@ -192,15 +192,18 @@ def _write_export_source(run_dir: str, it: int) -> None:
     """Record which checkpoint ``exported/`` was made from: ``exported/source.json`` (file name, iteration, sha256).
 
     ``network: fixed_order`` reads it to fly that checkpoint when the folder's TorchScript ``policy.pt`` is gone
-    (:func:`shield_nav.evaluation.policies.load_policy`). Written only when the checkpoint is on disk.
+    (:func:`shield_nav.evaluation.policies.load_policy`). Without the checkpoint on disk an earlier record is removed,
+    so it never names another checkpoint than the one exported.
     """
     from shield_nav.evaluation.policies import EXPORT_SOURCE_FILE, _sha256
     from shield_nav.jsonio import write_json
 
     ckpt = os.path.join(run_dir, f"model_{it}.pt")
+    record = os.path.join(run_dir, "exported", EXPORT_SOURCE_FILE)
     if os.path.isfile(ckpt):
-        write_json(os.path.join(run_dir, "exported", EXPORT_SOURCE_FILE),
-                   {"checkpoint": os.path.basename(ckpt), "iteration": it, "sha256": _sha256(ckpt)})  # fmt: skip
+        write_json(record, {"checkpoint": os.path.basename(ckpt), "iteration": it, "sha256": _sha256(ckpt)})
+    elif os.path.isfile(record):
+        os.remove(record)
 
 
 def _init_student(runner: Any, path: str, device: str) -> dict:

@@ -280,8 +280,9 @@ def _find_torchscript(file: str, name: str) -> str:
         if os.path.isfile(src):
             return _export_source_checkpoint(src, name)
     raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt (or a "
-                    f"packaged model.pt), and there is neither beside {file!r}; point --checkpoint at a policy.pt or "
-                    "a training checkpoint model_<it>.pt, or fly the ONNX file with --set network=export")  # fmt: skip
+                    f"packaged model.pt, or the run checkpoint an exported/{EXPORT_SOURCE_FILE} names), and there is "
+                    f"none beside {file!r}; point --checkpoint at a policy.pt or a training checkpoint model_<it>.pt, "
+                    "or fly the ONNX file with --set network=export")  # fmt: skip
 
 
 def _export_source_checkpoint(src: str, name: str) -> str:

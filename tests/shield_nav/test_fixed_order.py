@@ -221,7 +221,8 @@ def test_what_the_fixed_order_runtime_does_not_run_is_refused_by_name(tmp_path):
     lone = tmp_path / "lone"
     lone.mkdir()
     os.replace(paths["onnx"], lone / "policy.onnx")
-    with pytest.raises(E.EvalError, match=r"reads the TorchScript export policy.pt \(or a packaged model.pt\)"):
+    what = r"TorchScript export policy.pt \(or a packaged model.pt, or the run checkpoint an exported/source.json"
+    with pytest.raises(E.EvalError, match=what):
         E.load_policy(lone / "policy.onnx", "p", network="fixed_order")
     with pytest.raises(ConfigError, match="config key 'network': 'fast'; known"):
         E.load_eval_config(None, ["network=fast"])

@@ -22,6 +22,11 @@ Trials repeat bit for bit only with the same package versions (``shield_nav.prov
 record different ones, the report names them, since some discordant pairs are then floating-point divergence rather
 than a difference between the rows (docs/evaluation.md, "Reproducing a table").
 
+When the two rows fly different trained checkpoints (their manifests' ``checkpoint_sha256``), a single pair's
+report adds a note: its p-value is about those two policies over these trials, not about the recipes or the code
+that trained them, since two training seeds of one recipe often disagree on as many trials; such a claim needs
+training seeds as replicates (below).
+
 ``--below-tops`` counts a success only where the flight stayed below the obstacles' tops (the trial's
 ``metrics.flew_over`` is 0): a shield or policy that lets the vehicle climb over the clutter can gain successes that
 way, which the plain comparison would credit (docs/evaluation.md). A trial recorded without the metric is refused.
@@ -55,7 +60,7 @@ import math
 import os
 from typing import Any
 
-from shield_nav.evaluation import wilson_interval
+from shield_nav.evaluation import BUILTIN_ROWS, wilson_interval
 from shield_nav.evaluation.outcomes import OUTCOMES_FILE, read_outcomes
 from shield_nav.provenance import format_differences, manifest_record, version_differences
 
@@ -126,6 +131,29 @@ def _packages(spec: str) -> dict | None:
         return manifest_record(json.load(fh))
 
 
+def _checkpoint_sha(spec: str) -> str | None:
+    """The sha256 of the checkpoint that ``OUT_DIR:ROW`` flies, from ``OUT_DIR``'s manifest.
+
+    None without a manifest, for a row that flies no checkpoint (a baseline or the expert), or where the manifest
+    does not record it. The row's checkpoint key is its definition's ``policy``: the run's own ``rows:`` first, then
+    the registry (configs/eval/rows.yaml).
+    """
+    out_dir, _, row = spec.rpartition(":")
+    path = os.path.join(out_dir, "manifest.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as fh:
+        manifest = json.load(fh)
+    custom = (manifest.get("config") or {}).get("rows") or {}
+    if row in custom:
+        policy = (custom[row] or {}).get("policy", "")
+    elif row in BUILTIN_ROWS:
+        policy = BUILTIN_ROWS[row].policy
+    else:
+        return None
+    return (manifest.get("checkpoint_sha256") or {}).get(policy) if policy else None
+
+
 def _over_tops(pairs_trials: list[tuple[tuple, dict, dict]], side: int) -> int | None:
     """How many of one side's successes passed over the obstacles' tops (None if a success lacks the metric)."""
     n = 0
@@ -192,7 +220,10 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
 
     ``a_over`` and ``b_over`` count each side's successes that passed over the obstacles' tops (before
     ``below_tops`` discounts them; None where a success does not record ``metrics.flew_over``).
+    ``different_checkpoints``: whether the two rows fly different trained checkpoints (None where a side's manifest
+    does not say).
     """
+    sha_a, sha_b = _checkpoint_sha(a), _checkpoint_sha(b)
     trials = paired_trials(a, b, speeds)
     pairs = [(key, _succeeded(x, below_tops, key), _succeeded(y, below_tops, key)) for key, x, y in trials]
     n = len(pairs)
@@ -207,6 +238,7 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
         "speeds": sorted({p[0][2] for p in pairs}), "below_tops": below_tops,
         "a_over": _over_tops(trials, 0), "b_over": _over_tops(trials, 1),
         "package_differences": version_differences(_packages(a), _packages(b)),
+        "different_checkpoints": None if sha_a is None or sha_b is None else sha_a != sha_b,
     }  # fmt: skip
 
 
@@ -337,8 +369,8 @@ def over_tops_note(res: dict) -> str | None:
     )
 
 
-def format_report(res: dict) -> str:
-    """Human-readable lines of :func:`compare`'s result."""
+def format_report(res: dict, single: bool = True) -> str:
+    """Human-readable lines of :func:`compare`'s result (``single``: the only pair, with no replicate-level test)."""
 
     def pct(x: float) -> str:
         return f"{100 * x:.1f}"
@@ -360,6 +392,11 @@ def format_report(res: dict) -> str:
         lines.append(f"note: flown with different package versions (A / B: {format_differences(diff)}); some "
                      "discordant pairs may be floating-point divergence, not the rows (docs/evaluation.md, "
                      "'Reproducing a table')")  # fmt: skip
+    if single and res.get("different_checkpoints"):
+        lines.append("note: A and B fly different trained checkpoints; p compares these two policies over these "
+                     "trials, not the recipes or code that trained them (two training seeds of one recipe often "
+                     "disagree on as many trials): for that claim give training seeds as replicates (A1 B1 A2 B2 "
+                     "...) and read the replicate-level test")  # fmt: skip
     return "\n".join(lines)
 
 
@@ -402,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
         if scenes:
             print("\n" + format_by_scene(scenes[0]))
     else:
-        print("\n\n".join(format_report(r) + ("\n\n" + format_by_scene(t) if scenes else "")
+        print("\n\n".join(format_report(r, single=False) + ("\n\n" + format_by_scene(t) if scenes else "")
                            for r, t in zip(res["pairs"], scenes or [None] * len(specs), strict=True)))  # fmt: skip
         p = res["pooled"]
         print(f"\npooled over {p['replicates']} replicates, {p['n']} paired trials: "

@@ -309,3 +309,33 @@ def test_by_scene_lists_each_scenes_outcome_letters_and_bs_won_and_lost(tmp_path
     _write(tmp_path / "c", "odd", ["crashed", s, c, t])
     with pytest.raises(ValueError, match="unknown trial outcome 'crashed'"):
         by_scene(f"{tmp_path / 'c'}:odd", b)
+
+
+def test_a_single_pair_of_different_checkpoints_is_reported_as_two_policies_not_two_recipes(tmp_path, capsys):
+    s, c = "success", "collision"
+    _write(tmp_path / "a", "student_shield", [s, c, c])
+    _write(tmp_path / "b", "student_shield", [s, s, s])
+    _write(tmp_path / "b", "mine", [s, s, c])
+    a, b, mine = f"{tmp_path / 'a'}:student_shield", f"{tmp_path / 'b'}:student_shield", f"{tmp_path / 'b'}:mine"
+    assert compare(a, b)["different_checkpoints"] is None  # no manifests: nothing is claimed
+    man = {"config": {"rows": {}}, "checkpoint_sha256": {"student": "aa" * 32}}
+    (tmp_path / "a" / "manifest.json").write_text(json.dumps(man))
+    (tmp_path / "b" / "manifest.json").write_text(json.dumps(man))
+    assert compare(a, b)["different_checkpoints"] is False  # the same student (e.g. two shield settings)
+    main([a, b])
+    assert "different trained checkpoints" not in capsys.readouterr().out
+    # Another training run's student on B's side; a run's own row resolves through its 'rows:' to its checkpoint key.
+    rows = {"mine": {"label": "Mine", "controller": "policy", "policy": "other", "shield": True}}
+    man_b = {"config": {"rows": rows}, "checkpoint_sha256": {"student": "bb" * 32, "other": "aa" * 32}}
+    (tmp_path / "b" / "manifest.json").write_text(json.dumps(man_b))
+    assert compare(a, b)["different_checkpoints"] is True
+    assert compare(a, mine)["different_checkpoints"] is False
+    main([a, b])
+    assert "note: A and B fly different trained checkpoints" in capsys.readouterr().out
+    # As replicates the pooled report carries the replicate-level test instead, so the pairs carry no note.
+    main([a, b, a, b])
+    out = capsys.readouterr().out
+    assert "different trained checkpoints" not in out and "replicate level" in out
+    # A baseline row flies no checkpoint: unknown, not different.
+    _write(tmp_path / "b", "oracle", [s, s, s])
+    assert compare(a, f"{tmp_path / 'b'}:oracle")["different_checkpoints"] is None

@@ -122,28 +122,29 @@ def row_trials(spec: str, speeds: list[float] | None = None) -> dict[tuple, dict
     return found
 
 
-def _packages(spec: str) -> dict | None:
-    """The package versions (and SIMD extensions) ``OUT_DIR``'s manifest records (None before they were recorded)."""
+def _manifest(spec: str) -> dict | None:
+    """``OUT_DIR``'s ``manifest.json`` (None where there is none)."""
     path = os.path.join(spec.rpartition(":")[0], "manifest.json")
     if not os.path.exists(path):
         return None
     with open(path) as fh:
-        return manifest_record(json.load(fh))
+        return json.load(fh)
 
 
-def _checkpoint_sha(spec: str) -> str | None:
-    """The sha256 of the checkpoint that ``OUT_DIR:ROW`` flies, from ``OUT_DIR``'s manifest.
+def _packages(manifest: dict | None) -> dict | None:
+    """The package versions (and SIMD extensions) a manifest records (None before they were recorded)."""
+    return None if manifest is None else manifest_record(manifest)
+
+
+def _checkpoint_sha(manifest: dict | None, row: str) -> str | None:
+    """The sha256 of the checkpoint that ``row`` flies, from its output's manifest.
 
     None without a manifest, for a row that flies no checkpoint (a baseline or the expert), or where the manifest
     does not record it. The row's checkpoint key is its definition's ``policy``: the run's own ``rows:`` first, then
     the registry (configs/eval/rows.yaml).
     """
-    out_dir, _, row = spec.rpartition(":")
-    path = os.path.join(out_dir, "manifest.json")
-    if not os.path.exists(path):
+    if manifest is None:
         return None
-    with open(path) as fh:
-        manifest = json.load(fh)
     custom = (manifest.get("config") or {}).get("rows") or {}
     if row in custom:
         policy = (custom[row] or {}).get("policy", "")
@@ -223,7 +224,8 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
     ``different_checkpoints``: whether the two rows fly different trained checkpoints (None where a side's manifest
     does not say).
     """
-    sha_a, sha_b = _checkpoint_sha(a), _checkpoint_sha(b)
+    man_a, man_b = _manifest(a), _manifest(b)
+    sha_a, sha_b = _checkpoint_sha(man_a, a.rpartition(":")[2]), _checkpoint_sha(man_b, b.rpartition(":")[2])
     trials = paired_trials(a, b, speeds)
     pairs = [(key, _succeeded(x, below_tops, key), _succeeded(y, below_tops, key)) for key, x, y in trials]
     n = len(pairs)
@@ -237,7 +239,7 @@ def compare(a: str, b: str, speeds: list[float] | None = None, below_tops: bool 
         "a_only": a_only, "b_only": b_only, "p_mcnemar": mcnemar_exact(a_only, b_only),
         "speeds": sorted({p[0][2] for p in pairs}), "below_tops": below_tops,
         "a_over": _over_tops(trials, 0), "b_over": _over_tops(trials, 1),
-        "package_differences": version_differences(_packages(a), _packages(b)),
+        "package_differences": version_differences(_packages(man_a), _packages(man_b)),
         "different_checkpoints": None if sha_a is None or sha_b is None else sha_a != sha_b,
     }  # fmt: skip
 

@@ -46,6 +46,8 @@ def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainCo
     if cfg is None:
         raise ValueError(f"{ckpt_path}: the checkpoint carries no resolved config")
     meta = {"iter": int(ckpt["iter"]), **{k: v for k, v in infos.items() if k != "config"}}
+    if isinstance(meta.get("weight_average"), dict):  # a running average's tensors do not belong in meta.json
+        meta["weight_average"] = {k: v for k, v in meta["weight_average"].items() if k != "mean"}
     distilled = cfg.runner.class_name == "DistillationRunner"
     obs_set, key = ("student", "student_state_dict") if distilled else ("actor", "actor_state_dict")
     train_cfg = rsl_rl_train_cfg(cfg)

@@ -279,6 +279,12 @@ class RunnerConfig:
     """PPO only: for the first this many iterations of a new run the actor's parameters are frozen, so the fresh
     critic learns the values of the loaded actor before its advantages move the policy (needs
     ``algorithm.schedule: fixed``: with a frozen actor the KL is 0 and the adaptive rule would raise the rate)."""
+    average_iterations: int = 0
+    """PPO only: if > 0, the run's final checkpoint and export hold the uniform average of the actor's weights after
+    each of its last this many iterations (stochastic weight averaging, Izmailov et al. 2018), not the last
+    iteration's weights alone, which are kept as ``snapshot_<it>.pt``. The running average travels in every
+    checkpoint, so ``--resume`` continues it. 0: the last iteration's weights (rsl-rl's behaviour). See
+    docs/training.md, "Weight averaging"."""
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     """Optional: a scripted expert as the distillation teacher, or as the kickstarting reference of
     ``AnchoredPPO`` (see :class:`ExpertConfig`)."""
@@ -419,6 +425,13 @@ class TrainConfig:
         require(r.critic_warmup_iterations == 0 or (isinstance(a, PPOConfig) and a.schedule == "fixed"),
                 f"{prefix}runner.critic_warmup_iterations",
                 "needs runner.class_name OnPolicyRunner and runner.algorithm.schedule 'fixed'")  # fmt: skip
+        n_avg = r.average_iterations
+        require(n_avg == 0 or not distill, f"{prefix}runner.average_iterations",
+                "only with runner.class_name OnPolicyRunner (PPO)")  # fmt: skip
+        require(0 <= n_avg <= self.max_iterations - r.critic_warmup_iterations, f"{prefix}runner.average_iterations",
+                f"must be in [0, max_iterations - runner.critic_warmup_iterations = "
+                f"{self.max_iterations - r.critic_warmup_iterations}] (the iterations the actor trains), "
+                f"got {n_avg}")  # fmt: skip
         for key in ("student", "teacher") if distill else ("actor", "critic"):
             require(key in r.obs_groups, f"{prefix}runner.obs_groups.{key}", "is required")
         uses_expert_obs = any("expert" in groups for groups in r.obs_groups.values())
@@ -542,6 +555,7 @@ def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
         "expert",
         "actor_init",
         "critic_warmup_iterations",
+        "average_iterations",
     ):
         d.pop(key)
     teacher = d.pop("teacher")

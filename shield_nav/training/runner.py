@@ -58,6 +58,9 @@ class _VersionedSave:
         }
         if hasattr(self.env, "curriculum_levels"):
             full["curriculum_levels"] = self.env.curriculum_levels  # restored by --resume
+        average = getattr(self, "weight_average", None)
+        if average is not None:
+            full["weight_average"] = average.state()  # continued by --resume
         full.update(infos or {})
         super().save(path, infos=full)
 
@@ -300,6 +303,42 @@ def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: boo
     print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
 
 
+def _weight_average(runner: Any, cfg: TrainConfig, infos: dict, rank: int) -> Any:
+    """The run's :class:`WeightAverage` (``runner.average_iterations`` > 0), restored from a resumed checkpoint."""
+    n = cfg.runner.average_iterations
+    if n <= 0 or rank != 0:
+        return None
+    from shield_nav.training.averaging import WeightAverage
+
+    first, last = cfg.max_iterations - n, cfg.max_iterations - 1
+    stored = infos.get("weight_average")
+    if stored is not None and stored.get("applied"):
+        print(f"[train] the checkpoint already holds the average of iterations {first}-{last}", flush=True)
+        return None
+    average = WeightAverage.from_state(stored, first, last) if stored is not None else WeightAverage(first, last)
+    runner.weight_average = average  # read by _VersionedSave.save
+    print(f"[train] weight averaging: the final actor is the mean of iterations {first}-{last}"
+          f"{f' ({average.count} averaged so far)' if average.count else ''}", flush=True)  # fmt: skip
+    return average
+
+
+def _apply_weight_average(runner: Any, average: Any, run_dir: str, it: int) -> None:
+    """Keep the last iteration as ``snapshot_<it>.pt``; write the averaged actor as the final ``model_<it>.pt``."""
+    if not average.complete:
+        raise RuntimeError(f"weight averaging: iterations {average.iterations[:1]}..{average.iterations[-1:]} of "
+                           f"{average.first}-{average.last} were averaged; the run's final checkpoint is the last "
+                           f"iteration's (model_{it}.pt)")  # fmt: skip
+    final = os.path.join(run_dir, f"model_{it}.pt")
+    runner.save(os.path.join(run_dir, f"snapshot_{it}.pt"))  # the last iteration's own weights, for the record
+    actor = runner.alg._raw_actor
+    actor.load_state_dict(average.averaged_state_dict(actor))
+    runner.weight_average = None
+    summary = {"first": average.first, "last": average.last, "count": average.count, "applied": True}
+    runner.save(final, infos={"weight_average": summary})
+    print(f"[train] weight averaging: model_{it}.pt holds the mean actor of iterations {average.first}-{average.last} "
+          f"({average.count}); the last iteration's own weights are snapshot_{it}.pt", flush=True)  # fmt: skip
+
+
 def episode_means(ep_extras: list[dict], keys: tuple[str, ...]) -> dict[str, tuple[float, int]]:
     """Mean and count of each key over the episodes that ended this iteration (rsl-rl's ``ep_extras``)."""
     out = {}
@@ -381,6 +420,7 @@ def train(
     runner.add_git_repo_to_log(REPO_ROOT)
 
     start_it = 0
+    resumed_infos: dict = {}
     if cfg.runner.class_name == "DistillationRunner" and cfg.runner.expert.kind:
         runner.alg.teacher_loaded = True  # the scripted expert has no weights to load
         print(f"[train] teacher: the scripted '{cfg.runner.expert.kind}' expert (obs group 'expert')", flush=True)
@@ -402,7 +442,7 @@ def train(
     if resume is not None:
         # A scripted expert saved no teacher weights (an empty dict): load everything else.
         load_cfg = {"student": True, "optimizer": True, "iteration": True} if cfg.runner.expert.kind else None
-        infos = runner.load(str(resume), load_cfg=load_cfg, map_location=device) or {}
+        infos = resumed_infos = runner.load(str(resume), load_cfg=load_cfg, map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
         runner.current_learning_iteration = start_it
         runner.logger.tot_timesteps = int(infos.get("tot_timesteps", 0))
@@ -410,6 +450,7 @@ def train(
         _restore_levels(env, infos.get("curriculum_levels"), str(resume), strict=True)
         print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
     remaining = cfg.max_iterations - start_it
+    average = _weight_average(runner, cfg, resumed_infos, rank)
     # Critic warm-up: iterations [0, warmup_end) run with a frozen actor (also when a run resumes inside them).
     warmup_end = cfg.runner.critic_warmup_iterations if cfg.runner.class_name == "OnPolicyRunner" else 0
     actor_params = list(runner.alg._raw_actor.parameters()) if start_it < warmup_end else []
@@ -428,6 +469,8 @@ def train(
         # spans the whole run, so count from iteration 0 (else a resumed run prints an ETA of days).
         if "start_it" in kwargs:
             kwargs["start_it"] = 0
+        if average is not None:  # after the update, before rsl-rl's save of this iteration
+            average.add(runner.alg._raw_actor, kwargs.get("it", runner.current_learning_iteration))
         extras = episode_means(runner.logger.ep_extras, ("episode/success", "curriculum/mean_level"))
         log_fn(*args, **kwargs)
         print(progress_line(runner.logger, kwargs.get("it", runner.current_learning_iteration),
@@ -458,9 +501,13 @@ def train(
             env.close()
 
     if rank == 0:
-        it = runner.current_learning_iteration
+        # The last finished iteration: with nothing left to train, the resumed checkpoint's own (not start_it, which
+        # names no checkpoint: its export record would be dropped).
+        it = runner.current_learning_iteration if remaining > 0 else start_it - 1
         if interrupted:
             runner.save(os.path.join(run_dir, f"model_{it}.pt"), infos={"interrupted": interrupted})
+        elif average is not None:
+            _apply_weight_average(runner, average, run_dir, it)
         runner.logger.stop_logging_writer()
         if runner.logger.writer is not None and hasattr(runner.logger.writer, "close"):
             runner.logger.writer.close()

@@ -556,3 +556,61 @@ def test_stored_config_reads_a_pre_hysteresis_config_as_it_ran():
     assert "commit_dist" not in full["runner"]["expert"]["params"]["expert"]
     full["runner"]["expert"]["params"]["expert"]["commit_dist"] = 2.5
     assert load_train_config(overrides=stored_config(TrainConfig, full)).runner.expert.params.expert.commit_dist == 2.5
+
+
+def test_weight_averaging_writes_the_mean_actor_as_the_final_checkpoint_and_resumes(tmp_path):
+    """``runner.average_iterations=2`` of 4: model_3.pt holds the mean of iterations 2 and 3's actors."""
+    root = str(tmp_path / "logs")
+    args = [*TINY, "--max-iterations", "4", "--log-dir", root, "--set", "runner.save_interval=1",
+            "runner.average_iterations=2"]  # fmt: skip
+    res = run_train(args)
+    assert res.returncode == 0, res.stderr[-3000:]
+    run = only_run_dir(root)
+
+    def check(run):
+        raw2 = torch.load(os.path.join(run, "model_2.pt"), weights_only=False)  # saved inside the window
+        last = torch.load(os.path.join(run, "snapshot_3.pt"), weights_only=False)
+        final = torch.load(os.path.join(run, "model_3.pt"), weights_only=False)
+        assert raw2["infos"]["weight_average"]["iterations"] == [2]
+        assert final["iter"] == 3 and final["infos"]["weight_average"] == {"first": 2, "last": 3, "count": 2,
+                                                                           "applied": True}  # fmt: skip
+        a, b, m = raw2["actor_state_dict"], last["actor_state_dict"], final["actor_state_dict"]
+        moved = 0
+        for k, v in m.items():
+            if k == "obs_normalizer._std":
+                torch.testing.assert_close(v, torch.sqrt(m["obs_normalizer._var"]))
+            elif v.is_floating_point():
+                torch.testing.assert_close(v, ((a[k].double() + b[k].double()) / 2).float())
+                moved += not torch.equal(a[k], b[k])
+            else:
+                assert torch.equal(v, b[k])  # the normaliser's count: the last iteration's
+        assert moved >= 10  # the two iterations' actors differ, so the mean is neither of them
+        torch.testing.assert_close(final["critic_state_dict"], last["critic_state_dict"])  # the critic: the last
+        with open(os.path.join(run, "exported", "source.json")) as f:
+            source = json.load(f)
+        with open(os.path.join(run, "model_3.pt"), "rb") as f:
+            assert source["checkpoint"] == "model_3.pt" and source["sha256"] == hashlib.sha256(f.read()).hexdigest()
+        return m
+
+    check(run)
+    assert "model_3.pt holds the mean actor of iterations 2-3" in res.stdout
+    # A kill after iteration 2: resume from model_2.pt continues the stored mean (iteration 2 is not retrained).
+    for f in ("model_3.pt", "snapshot_3.pt"):
+        os.remove(os.path.join(run, f))
+    res = run_train(["--resume", os.path.join(run, "model_2.pt"), "--max-iterations", "4"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "the mean of iterations 2-3 (1 averaged so far)" in res.stdout
+    check(run)
+    # Resuming the finished run averages nothing twice.
+    res = run_train(["--resume", os.path.join(run, "model_3.pt"), "--max-iterations", "4"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "already holds the average of iterations 2-3" in res.stdout
+    check(run)
+
+
+def test_weight_averaging_longer_than_the_run_fails_by_name(tmp_path):
+    res = run_train([*TINY, "--max-iterations", "3", "--log-dir", str(tmp_path), "--set",
+                     "runner.average_iterations=4"])  # fmt: skip
+    assert res.returncode != 0
+    assert "runner.average_iterations" in res.stderr and "got 4" in res.stderr
+    assert not os.path.exists(os.path.join(tmp_path, "quick"))

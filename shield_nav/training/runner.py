@@ -303,8 +303,12 @@ def _restore_levels(env: Any, levels: list[int] | None, source: str, strict: boo
     print(f"[train] curriculum levels restored (mean {sum(levels) / len(levels):.2f})", flush=True)
 
 
-def _weight_average(runner: Any, cfg: TrainConfig, infos: dict, rank: int) -> Any:
-    """The run's :class:`WeightAverage` (``runner.average_iterations`` > 0), restored from a resumed checkpoint."""
+def _weight_average(runner: Any, cfg: TrainConfig, infos: dict, rank: int, start_it: int) -> Any:
+    """The run's :class:`WeightAverage` (``runner.average_iterations`` > 0), restored from a resumed checkpoint.
+
+    A run that resumes past iterations the average needs (its checkpoint was saved without them) is refused here,
+    before any training.
+    """
     n = cfg.runner.average_iterations
     if n <= 0 or rank != 0:
         return None
@@ -316,6 +320,11 @@ def _weight_average(runner: Any, cfg: TrainConfig, infos: dict, rank: int) -> An
         print(f"[train] the checkpoint already holds the average of iterations {first}-{last}", flush=True)
         return None
     average = WeightAverage.from_state(stored, first, last) if stored is not None else WeightAverage(first, last)
+    expected = average.iterations[-1] + 1 if average.iterations else first
+    if start_it > expected:
+        raise ConfigError(f"config key 'runner.average_iterations': the run resumes at iteration {start_it}, but the "
+                          f"average of iterations {first}-{last} needs iteration {expected} on, which the resumed "
+                          f"checkpoint does not hold (saved without runner.average_iterations = {n})")  # fmt: skip
     runner.weight_average = average  # read by _VersionedSave.save
     print(f"[train] weight averaging: the final actor is the mean of iterations {first}-{last}"
           f"{f' ({average.count} averaged so far)' if average.count else ''}", flush=True)  # fmt: skip
@@ -450,7 +459,7 @@ def train(
         _restore_levels(env, infos.get("curriculum_levels"), str(resume), strict=True)
         print(f"[train] resumed from {resume}: continuing at iteration {start_it}", flush=True)
     remaining = cfg.max_iterations - start_it
-    average = _weight_average(runner, cfg, resumed_infos, rank)
+    average = _weight_average(runner, cfg, resumed_infos, rank, start_it)
     # Critic warm-up: iterations [0, warmup_end) run with a frozen actor (also when a run resumes inside them).
     warmup_end = cfg.runner.critic_warmup_iterations if cfg.runner.class_name == "OnPolicyRunner" else 0
     actor_params = list(runner.alg._raw_actor.parameters()) if start_it < warmup_end else []

@@ -608,9 +608,19 @@ def test_weight_averaging_writes_the_mean_actor_as_the_final_checkpoint_and_resu
     check(run)
 
 
-def test_weight_averaging_longer_than_the_run_fails_by_name(tmp_path):
+def test_weight_averaging_longer_than_the_run_or_past_a_resume_fails_by_name(tmp_path):
     res = run_train([*TINY, "--max-iterations", "3", "--log-dir", str(tmp_path), "--set",
                      "runner.average_iterations=4"])  # fmt: skip
     assert res.returncode != 0
     assert "runner.average_iterations" in res.stderr and "got 4" in res.stderr
     assert not os.path.exists(os.path.join(tmp_path, "quick"))
+    # A run trained without averaging, resumed after iteration 1 with an average of iterations 1-3: iteration 1 is
+    # not in the checkpoint, so the resume is refused before it trains anything.
+    res = run_train([*TINY, "--max-iterations", "2", "--log-dir", str(tmp_path)])
+    assert res.returncode == 0, res.stderr[-3000:]
+    run = only_run_dir(str(tmp_path))
+    res = run_train(["--resume", os.path.join(run, "model_1.pt"), "--max-iterations", "4", "--set",
+                     "runner.average_iterations=3"])  # fmt: skip
+    assert res.returncode != 0
+    assert "runner.average_iterations" in res.stderr and "needs iteration 1 on" in res.stderr
+    assert not os.path.exists(os.path.join(run, "model_2.pt"))

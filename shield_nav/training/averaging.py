@@ -33,9 +33,13 @@ class WeightAverage:
         if not 0 <= first <= last:
             raise ValueError(f"WeightAverage: need 0 <= first <= last, got first={first}, last={last}")
         self.first, self.last = int(first), int(last)
-        self.count = 0
         self.iterations: list[int] = []
         self.mean: dict[str, torch.Tensor] = {}
+
+    @property
+    def count(self) -> int:
+        """How many iterations the mean holds."""
+        return len(self.iterations)
 
     @property
     def complete(self) -> bool:
@@ -50,7 +54,7 @@ class WeightAverage:
             raise RuntimeError(f"WeightAverage: iteration {it} follows {self.iterations[-1]}: an iteration is missing")
         if not self.iterations and it != self.first:
             raise RuntimeError(f"WeightAverage: the average starts at iteration {self.first}, got {it} first")
-        self.count += 1
+        n = self.count + 1
         for k, v in module.state_dict().items():
             if not v.is_floating_point():
                 continue
@@ -60,7 +64,7 @@ class WeightAverage:
             if k not in self.mean:
                 self.mean[k] = x.clone()
             else:
-                self.mean[k] += (x - self.mean[k]) / self.count
+                self.mean[k] += (x - self.mean[k]) / n
         self.iterations.append(int(it))
         return True
 
@@ -88,9 +92,6 @@ class WeightAverage:
                              f"this run's config [{first}, {last}] (runner.average_iterations or max_iterations "
                              f"changed since)")  # fmt: skip
         avg = cls(first, last)
-        avg.count = int(state["count"])
         avg.iterations = [int(i) for i in state["iterations"]]
         avg.mean = {k: v.to(torch.float64).clone() for k, v in state["mean"].items()}
-        if avg.count != len(avg.iterations):
-            raise ValueError(f"WeightAverage: stored count {avg.count} != {len(avg.iterations)} stored iterations")
         return avg

@@ -24,7 +24,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="train.py", description="Train the depth CNN+GRU policy with rsl-rl PPO.")
     p.add_argument("--config", help="configs/train/<name>.yaml (required unless --resume)")
     p.add_argument("--set", nargs="+", action="extend", default=[], metavar="A.B=V",
-                   help="dotted overrides, e.g. env.num_envs=32 (repeatable; all apply, in order)")  # fmt: skip
+                   help="dotted overrides, e.g. env.num_envs=32 (repeatable; all apply, in order); with a pipeline, "
+                        "STAGE:A.B=V applies to that stage only")  # fmt: skip
     p.add_argument("--num-envs", type=int, help="shorthand for --set env.num_envs=N")
     p.add_argument("--max-iterations", type=int, help="total iterations of the run")
     p.add_argument("--seed", type=int, help="sets seed and env.seed")
@@ -57,6 +58,10 @@ def overrides_from_args(args: argparse.Namespace) -> list[str]:
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """Resolve the config: (stored config of --resume | --config) + --set + shorthand flags."""
     overrides = overrides_from_args(args)
+    for item in overrides:
+        if ":" in item.partition("=")[0]:
+            raise ConfigError(f"override '{item}': a '<stage>:' prefix applies to a pipeline's stages only "
+                              "(--config <pipeline>.yaml or --resume <pipeline folder>)")  # fmt: skip
     if args.resume is not None:
         stored = stored_config(TrainConfig, read_checkpoint_infos(args.resume, "--resume")["config"])
         if args.config is not None:

@@ -18,6 +18,7 @@ input fails before any work), then runs the stages in
 pipeline folder keeps ``pipeline.yaml`` (the resolved configs) and, per finished stage, ``<NN>_<stage>/stage.json``
 (its final checkpoint and training time). ``python train.py --resume <pipeline folder>`` skips finished stages,
 continues the interrupted one from its newest ``model_<it>.pt``, and runs the rest with the stored configs.
+Command-line overrides apply to every stage, or as ``<stage>:<a.b>=<value>`` to one (:func:`stage_overrides`).
 A pipeline folder may be moved (committed for a later session, copied to another clone): the inputs its own earlier
 stages produced are read from where the folder is now.
 
@@ -242,17 +243,44 @@ def final_checkpoint(run_dir: str, cfg: TrainConfig) -> str:
     return os.path.join(run_dir, f"model_{cfg.max_iterations - 1}.pt")
 
 
+def stage_overrides(overrides: Sequence[str], stage: str, stages: Sequence[str]) -> list[str]:
+    """The command-line overrides that apply to ``stage``, in their order, each without its stage prefix.
+
+    An override ``<stage>:<a.b>=<value>`` applies to that stage only; ``<a.b>=<value>`` to every stage. A prefix
+    that names no stage of ``stages`` is an error naming it (a dotted key never holds ``:``; a value may).
+
+    Raises:
+        ConfigError: On a prefix that is not one of ``stages``.
+    """
+    kept = []
+    for item in overrides:
+        key, eq, value = item.partition("=")
+        prefix, colon, dotted = key.partition(":")
+        if not colon:
+            kept.append(item)
+            continue
+        if prefix not in stages:
+            raise ConfigError(f"override '{item}': '{prefix}' is not a stage of this pipeline (stages: "
+                              f"{', '.join(stages)})")  # fmt: skip
+        if prefix == stage:
+            kept.append(f"{dotted}{eq}{value}")
+    return kept
+
+
 def resolve(pipeline: Pipeline, root: str, overrides: Sequence[str] = ()) -> list[TrainConfig]:
     """Every stage's resolved config, with ``${stage}`` replaced by that stage's final checkpoint under ``root``.
 
-    ``overrides`` (the command line's ``--set`` and shorthand flags) apply to every stage, after the stage's own.
+    ``overrides`` (the command line's ``--set`` and shorthand flags) apply after the stage's own: to every stage, or
+    as ``<stage>:<a.b>=<value>`` to that stage only (:func:`stage_overrides`).
     """
     outputs: dict[str, str] = {}
     configs = []
+    names = [s.name for s in pipeline.stages]
     for i, stage in enumerate(pipeline.stages):
         own = [_REF.sub(lambda m: outputs[m.group(1)], o) for o in stage.overrides]
+        given = stage_overrides(overrides, stage.name, names)
         try:
-            cfg = load_train_config(files=stage.config, overrides=[*own, *overrides])
+            cfg = load_train_config(files=stage.config, overrides=[*own, *given])
         except ConfigError as err:
             raise ConfigError(f"pipeline stage '{stage.name}': {err}") from None
         if getattr(cfg.runner.algorithm, "lr_schedule_iterations", None) == 0:
@@ -446,15 +474,17 @@ def load_stored(root: str, overrides: Sequence[str] = ()) -> tuple[list[str], li
         found = [load_stored(chain_dir(root, k), overrides) for k in range(int(record["chains"]))]
         return found[0]
     names, configs = [], []
+    stages = [s["name"] for s in record["stages"]]
     for i, stage in enumerate(record["stages"]):
         runner = stage["config"].get("runner", {})
         earlier = {os.path.basename(stage_dir(root, j, s["name"])) for j, s in enumerate(record["stages"][:i])}
         for key in _INPUT_KEYS:
             if isinstance(runner.get(key), str):
                 runner[key] = _relocated(runner[key], root, earlier)
+        given = stage_overrides(overrides, stage["name"], stages)
         try:
             stored = stored_config(TrainConfig, stage["config"])
-            cfg = load_train_config(overrides=list(overrides), base=load_train_config(overrides=stored))
+            cfg = load_train_config(overrides=given, base=load_train_config(overrides=stored))
         except ConfigError as err:
             raise ConfigError(f"pipeline stage '{stage['name']}': {err}") from None
         names.append(stage["name"])

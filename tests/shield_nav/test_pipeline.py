@@ -365,3 +365,48 @@ def test_bad_chains_fail_by_key_before_any_folder(tmp_path):
             pipeline.start(pipeline.load_pipeline(recipe), [f"log_root={root}"])
         assert expected in str(err.value)
         assert not root.exists()
+
+
+def test_stage_prefixed_overrides_reach_their_stage_only(tmp_path):
+    """``--set <stage>:a.b=v`` changes that stage's config, at start and on resume; a plain override every stage's."""
+    recipe = write_pipeline(tmp_path, {
+        "name": "two",
+        "stages": [
+            {"name": "first", "config": QUICK, "set": ["max_iterations=2"]},
+            {"name": "second", "config": QUICK, "set": ["max_iterations=3", "runner.actor_init=${first}"]},
+        ],
+    })  # fmt: skip
+    pipe = pipeline.load_pipeline(recipe)
+    given = ["second:max_iterations=7", "env.num_envs=6", "first:runner.algorithm.class_name=PPO"]
+    assert pipeline.stage_overrides(given, "first", ["first", "second"]) == [
+        "env.num_envs=6",
+        "runner.algorithm.class_name=PPO",
+    ]
+    assert pipeline.stage_overrides(given, "second", ["first", "second"]) == ["max_iterations=7", "env.num_envs=6"]
+    # a colon in the value is not a prefix; one in the key is
+    value = "runner.algorithm.class_name=shield_nav.anchored:AnchoredPPO"
+    assert pipeline.stage_overrides([value, f"second:{value}"], "first", ["first", "second"]) == [value]
+    assert pipeline.stage_overrides([value, f"second:{value}"], "second", ["first", "second"]) == [value, value]
+    first, second = pipeline.resolve(pipe, "root", given)
+    assert (first.max_iterations, second.max_iterations) == (2, 7)  # the stage's own 3, then the prefixed 7
+    assert (first.env.num_envs, second.env.num_envs) == (6, 6)
+    # the second stage's input is the first stage's final checkpoint, whose name follows the first's 2 iterations
+    assert second.runner.actor_init == os.path.join("root", "00_first", "model_1.pt")
+
+    root = pipeline.start(pipe, [f"log_root={tmp_path / 'logs'}", "first:seed=11"])
+    names, (a, b) = pipeline.load_stored(root, ["second:env.num_envs=8"])
+    assert names == ["first", "second"] and (a.seed, b.seed) == (11, 0)  # quick.yaml keeps base.yaml's seed 0
+    assert (a.env.num_envs, b.env.num_envs) == (16, 8)  # quick.yaml's 16 envs; the resume's override on the second
+    for bad in (["third:seed=1"], ["firs:env.num_envs=2"]):
+        with pytest.raises(ConfigError, match=f"'{bad[0].partition(':')[0]}' is not a stage of this pipeline"):
+            pipeline.resolve(pipe, "root", bad)
+        with pytest.raises(ConfigError, match="is not a stage of this pipeline"):
+            pipeline.load_stored(root, bad)
+    # through train.py: refused before any folder, and refused on a single run, both naming the override
+    logs = tmp_path / "fresh"
+    res = run_train(["--config", recipe, "--log-dir", str(logs), "--set", "thrid:seed=3"], timeout=120)
+    assert res.returncode == 2 and "override 'thrid:seed=3': 'thrid' is not a stage" in res.stderr
+    assert not logs.exists()
+    res = run_train(["--config", QUICK, "--log-dir", str(logs), "--set", "first:seed=3"], timeout=120)
+    assert res.returncode == 2 and "override 'first:seed=3': a '<stage>:' prefix applies to a pipeline" in res.stderr
+    assert not logs.exists()

@@ -12,7 +12,17 @@ import os
 from envs.config import ConfigError
 from shield_nav.training.config import CHECKPOINT_FORMAT_VERSION, TrainConfig, migrate_flat_algorithm
 
-__all__ = ["check_checkpoint", "check_device", "check_files", "read_checkpoint_infos"]
+__all__ = ["check_checkpoint", "check_device", "check_files", "in_run_folder", "read_checkpoint_infos"]
+
+
+def in_run_folder(checkpoint: str | os.PathLike) -> bool:
+    """Whether ``checkpoint`` sits in a training run's folder (tensorboard events beside it).
+
+    ``--resume`` continues such a run in its folder; a packaged policy (``checkpoints/<name>/model.pt``) has none and
+    continues in a new run folder.
+    """
+    folder = os.path.dirname(os.path.abspath(checkpoint))
+    return os.path.isdir(folder) and any(f.startswith("events.out.tf") for f in os.listdir(folder))
 
 
 def check_device(device: str) -> None:

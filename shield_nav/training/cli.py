@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 
 from envs.config import ConfigError, stored_config
-from shield_nav.training.checks import check_files, read_checkpoint_infos
+from shield_nav.training.checks import check_files, in_run_folder, read_checkpoint_infos
 from shield_nav.training.config import TrainConfig, load_train_config
 
 __all__ = ["build_parser", "config_from_args", "main", "overrides_from_args"]
@@ -66,6 +66,13 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         stored = stored_config(TrainConfig, read_checkpoint_infos(args.resume, "--resume")["config"])
         if args.config is not None:
             print(f"[train] --resume: using the run's stored config; ignoring --config {args.config}", flush=True)
+        if not in_run_folder(args.resume) and not any(o.startswith("log_root=") for o in overrides):
+            # A packaged policy continues in a new run folder; the log_root it stored is its trainer's machine's.
+            default = TrainConfig.log_root
+            print(f"[train] --resume: {args.resume} is not in a run folder; continuing in a new one under "
+                  f"{default!r} (--log-dir to choose; the stored log_root {stored.get('log_root')!r} was where it "
+                  "was trained)", flush=True)  # fmt: skip
+            stored = {**stored, "log_root": default}
         # The stored config is what ran; keys given now must exist in its algorithm's section.
         return load_train_config(overrides=overrides, base=load_train_config(overrides=stored))
     if args.config is None:

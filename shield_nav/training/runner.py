@@ -9,7 +9,6 @@ import contextlib
 import dataclasses
 import datetime
 import functools
-import glob
 import math
 import os
 import signal
@@ -25,7 +24,7 @@ from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 from envs.config import ConfigError, to_dict, to_yaml
 from shield_nav.baselines import EXPERTS
 from shield_nav.provenance import cpu_model, cpu_simd, package_versions
-from shield_nav.training.checks import check_files
+from shield_nav.training.checks import check_files, in_run_folder
 from shield_nav.training.config import (
     CHECKPOINT_FORMAT_VERSION,
     REPO_ROOT,
@@ -409,7 +408,7 @@ def train(
 
     if run_dir is not None:
         os.makedirs(run_dir, exist_ok=True)
-    elif resume is not None and glob.glob(os.path.join(os.path.dirname(os.path.abspath(resume)), "events.out.tf*")):
+    elif resume is not None and in_run_folder(resume):
         run_dir = os.path.dirname(os.path.abspath(resume))
     elif resume is not None:
         # A packaged policy (checkpoints/<name>/model.pt) has no run folder: continue in a new one under log_dir.

@@ -624,3 +624,31 @@ def test_weight_averaging_longer_than_the_run_or_past_a_resume_fails_by_name(tmp
     assert res.returncode != 0
     assert "runner.average_iterations" in res.stderr and "needs iteration 1 on" in res.stderr
     assert not os.path.exists(os.path.join(run, "model_2.pt"))
+
+
+def test_resuming_a_packaged_policy_continues_under_logs_not_its_trainers_log_root(tmp_path):
+    """A checkpoint without a run folder (a packaged policy) stored its trainer's log_root, a path of that machine:
+    ``--resume`` continues in a new run folder under ``logs`` of the working directory, or under ``--log-dir``."""
+    trained = str(tmp_path / "trainer_machine")
+    res = run_train([*TINY, "--max-iterations", "2", "--log-dir", trained])
+    assert res.returncode == 0, res.stderr[-3000:]
+    package = tmp_path / "package"
+    package.mkdir()
+    with open(os.path.join(only_run_dir(trained), "model_1.pt"), "rb") as f:
+        (package / "model.pt").write_bytes(f.read())
+    work = tmp_path / "work"
+    work.mkdir()
+    res = subprocess.run([sys.executable, os.path.join(REPO, "train.py"), "--resume", str(package / "model.pt"),
+                          "--max-iterations", "3"], cwd=work, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "is not in a run folder; continuing in a new one under 'logs'" in res.stdout
+    assert f"the stored log_root {trained!r}" in res.stdout
+    run = only_run_dir(str(work / "logs"))
+    assert torch.load(os.path.join(run, "model_2.pt"), weights_only=False)["iter"] == 2
+    assert len(os.listdir(os.path.join(trained, "quick"))) == 1  # nothing new where it was trained
+    assert sorted(os.listdir(package)) == ["model.pt"]  # nor beside the packaged policy
+    chosen = str(tmp_path / "chosen")
+    res = run_train(["--resume", str(package / "model.pt"), "--max-iterations", "3", "--log-dir", chosen])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "is not in a run folder" not in res.stdout
+    assert torch.load(os.path.join(only_run_dir(chosen), "model_2.pt"), weights_only=False)["iter"] == 2

@@ -448,8 +448,10 @@ def train(
         print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
         _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"), cfg.runner.actor_init)
     if resume is not None:
-        # A scripted expert saved no teacher weights (an empty dict): load everything else.
-        load_cfg = {"student": True, "optimizer": True, "iteration": True} if cfg.runner.expert.kind else None
+        # DAgger from a scripted expert saved no teacher weights (an empty dict): load everything else. A PPO run
+        # kickstarted by a scripted expert loads everything (its actor and critic are PPO's).
+        scripted_teacher = cfg.runner.class_name == "DistillationRunner" and cfg.runner.expert.kind
+        load_cfg = {"student": True, "optimizer": True, "iteration": True} if scripted_teacher else None
         infos = resumed_infos = runner.load(str(resume), load_cfg=load_cfg, map_location=device) or {}
         start_it = runner.current_learning_iteration + 1  # the checkpoint holds a finished iteration
         runner.current_learning_iteration = start_it

@@ -299,3 +299,16 @@ def test_train_cli_kickstarts_the_committed_student_with_the_expert(tmp_path):
     anchor = acc.Scalars("Loss/anchor")
     assert [e.step for e in anchor] == [0, 1] and all(0.0 < e.value < 10.0 for e in anchor)
     assert os.path.isfile(os.path.join(run_dir, "exported", "policy.onnx"))
+
+    # --resume continues this actor and critic (until 2026-12-05 a run kickstarted by a scripted expert resumed with
+    # its optimizer and iteration count but freshly initialised networks): one more update at learning rate 1e-4
+    # moves the weights by well under 1 % of their norm; a fresh initialisation lies ~100 % away.
+    res = subprocess.run([sys.executable, "train.py", "--resume", os.path.join(run_dir, "model_1.pt"),
+                          "--max-iterations", "3"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    resumed = torch.load(os.path.join(run_dir, "model_2.pt"), weights_only=False)
+    for part in ("actor_state_dict", "critic_state_dict"):
+        keys = [k for k, v in ckpt[part].items() if "normalizer" not in k and v.is_floating_point()]
+        norm = sum(float((ckpt[part][k].double() ** 2).sum()) for k in keys) ** 0.5
+        step = sum(float(((resumed[part][k] - ckpt[part][k]).double() ** 2).sum()) for k in keys) ** 0.5
+        assert 0.0 < step / norm < 0.01, (part, step / norm)

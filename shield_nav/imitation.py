@@ -19,6 +19,13 @@ pitch, yaw):
 A large wrong-sign share means the student and its expert chose different sides around obstacles. Averaging the
 two sides is the failure a multi-hypothesis head addresses (:mod:`shield_nav.distillation`).
 
+For a multi-hypothesis student (``actor.num_hypotheses`` K > 1) a ``selection`` section reads its candidate choice
+(:func:`selection_metrics`): how often the flown (best-scored) candidate is the one nearest the expert's label
+(``nearest_share``; 1/K is chance), the error of the flown candidate against the nearest one's (``chosen_mse``,
+``nearest_mse``; their gap is what a perfect choice would gain), the median lead of the best score over the second
+(``score_gap_median``, in logits), and how often the flown candidate changes from one 10 ms step to the next
+(``switch_rate``), with the mean jump of the flown action on those steps and on the others.
+
 With the planning expert the samples are also split by the expert's route
 (:func:`shield_nav.route_view.route_away`): steps where the route 3 m ahead lies more than 45 deg off the goal's
 bearing (``away``: a way the goal's direction does not suggest, chosen by the map beyond the view) and the rest
@@ -82,6 +89,64 @@ def gap_metrics(student: np.ndarray, expert: np.ndarray) -> dict:
     return out
 
 
+def selection_metrics(cands: np.ndarray, scores: np.ndarray, expert: np.ndarray, dones: np.ndarray) -> dict:
+    """How a multi-hypothesis student chooses among its candidates, over a closed-loop flight.
+
+    Args:
+        cands: Candidate actions ``(T, N, K, A)`` at each of ``T`` steps of ``N`` envs.
+        scores: Their scores ``(T, N, K)``; the flown candidate is the best-scored one (the first on ties, as
+            :class:`shield_nav.models.HypothesisSelect`).
+        expert: The expert's labels ``(T, N, A)``.
+        dones: ``(T, N)``: env ``n``'s episode ended at step ``t`` (step ``t + 1`` starts a new one, so a change of
+            candidate across it is not counted).
+
+    Returns:
+        ``nearest_share`` (the flown candidate has the smallest squared error to the label; ties count for it),
+        ``chosen_mse`` / ``nearest_mse`` / ``uniform_mse`` (mean squared error per action value of the flown, the
+        nearest, and a uniformly drawn candidate), ``score_gap_median`` and ``score_gap_below_0_5`` (the best score
+        minus the second), ``switch_rate`` (steps whose flown candidate differs from the previous step's, over the
+        steps that have a previous step in the same episode), ``jump_switch`` / ``jump_stay`` (mean Euclidean change
+        of the flown action on those steps with / without a change; NaN where there are none) and ``share`` (how
+        often each candidate is flown).
+    """
+    c = np.asarray(cands, dtype=np.float64)
+    sc = np.asarray(scores, dtype=np.float64)
+    e = np.asarray(expert, dtype=np.float64)
+    d = np.asarray(dones, dtype=bool)
+    if c.ndim != 4 or sc.shape != c.shape[:3] or e.shape != c.shape[:2] + c.shape[3:] or d.shape != c.shape[:2]:
+        raise ValueError(f"need cands (T, N, K, A), scores (T, N, K), expert (T, N, A), dones (T, N); got "
+                         f"{c.shape}, {sc.shape}, {e.shape}, {d.shape}")  # fmt: skip
+    if c.shape[2] < 2:
+        raise ValueError(f"selection metrics need K >= 2 candidates, got {c.shape[2]}")
+    if not (np.isfinite(c).all() and np.isfinite(sc).all() and np.isfinite(e).all()):
+        raise ValueError("candidates, scores and expert labels must be finite")
+    k = c.shape[2]
+    err = ((c - e[:, :, None, :]) ** 2).mean(axis=-1)  # (T, N, K)
+    chosen = sc.argmax(axis=-1)  # (T, N)
+    err_chosen = np.take_along_axis(err, chosen[..., None], axis=-1)[..., 0]
+    top2 = np.sort(sc, axis=-1)[..., -2:]
+    gap = top2[..., 1] - top2[..., 0]
+    flown = np.take_along_axis(c, chosen[..., None, None], axis=2)[:, :, 0]  # (T, N, A)
+    same_episode = ~d[:-1]  # step t + 1 continues step t's episode
+    changed = (chosen[1:] != chosen[:-1]) & same_episode
+    jump = np.linalg.norm(flown[1:] - flown[:-1], axis=-1)
+    stay = same_episode & ~changed
+    return {
+        "samples": int(err_chosen.size),
+        "candidates": k,
+        "nearest_share": float((err_chosen <= err.min(axis=-1)).mean()),
+        "chosen_mse": float(err_chosen.mean()),
+        "nearest_mse": float(err.min(axis=-1).mean()),
+        "uniform_mse": float(err.mean()),
+        "score_gap_median": float(np.median(gap)),
+        "score_gap_below_0_5": float((gap < 0.5).mean()),
+        "switch_rate": float(changed.sum() / max(int(same_episode.sum()), 1)),
+        "jump_switch": float(jump[changed].mean()) if changed.any() else float("nan"),
+        "jump_stay": float(jump[stay].mean()) if stay.any() else float("nan"),
+        "share": [float(v) for v in np.bincount(chosen.ravel(), minlength=k) / chosen.size],
+    }
+
+
 def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num_envs: int = 32, seed: int = 0,
             family: str | None = None) -> dict:  # fmt: skip
     """Fly the student of ``ckpt`` ``steps`` steps in ``num_envs`` envs of its training family: :func:`gap_metrics`.
@@ -125,16 +190,24 @@ def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num
     planner = getattr(env.expert, "controller", None)
     planner = planner if isinstance(planner, PlannerController) else None
     student, expert, away = [], [], []
+    multi = getattr(model, "num_hypotheses", 1) > 1
+    cands, scores, ended = [], [], []
     with torch.no_grad():
         for _ in range(steps):
             act = model(obs)
             student.append(act.numpy().copy())
             expert.append(obs["expert"].numpy().copy())
+            if multi:  # the head's candidates and scores of this forward pass (DepthGRUModel keeps them)
+                cands.append(model.last_hypotheses.numpy().copy())
+                scores.append(model.last_scores.numpy().copy())
             if planner is not None:  # the route the label was computed on (the expert ran on this observation)
                 away.append(route_away(planner.last["path"], env.env.goal_buf - env.env.local_pos))
             obs, _, dones, _ = env.step(act)
             model.reset(dones)
+            ended.append(dones.numpy().astype(bool))
     out = gap_metrics(np.array(student), np.array(expert))
+    if multi:
+        out["selection"] = selection_metrics(np.array(cands), np.array(scores), np.array(expert), np.array(ended))
     if planner is not None:
         # Split by where the expert's route goes: more than 45 deg off the goal's bearing 3 m along (a way the goal's
         # direction does not suggest, chosen by the map beyond the view) or not.
@@ -201,6 +274,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\nsteps where the expert's route turns {where} the goal ({100 * share:.0f} % of samples, "
                   f"{sub['samples']}): MSE {sub['mse']:.4f}")  # fmt: skip
             print(format_table(sub))
+        sel = res.get("selection")
+        if sel is not None:
+            print(f"\ncandidate choice ({sel['candidates']} candidates): the flown one is the nearest to the label on "
+                  f"{100 * sel['nearest_share']:.0f} % of samples (chance {100 / sel['candidates']:.0f} %); MSE flown "
+                  f"{sel['chosen_mse']:.4f}, nearest {sel['nearest_mse']:.4f}, uniform pick {sel['uniform_mse']:.4f}; "
+                  f"best score leads the second by {sel['score_gap_median']:.2f} (median, logits); the flown "
+                  f"candidate changes on {100 * sel['switch_rate']:.1f} % of steps, the action then jumping "
+                  f"{sel['jump_switch']:.2f} (otherwise {sel['jump_stay']:.2f})")  # fmt: skip
     return 0
 
 

@@ -356,6 +356,37 @@ def test_imitation_gap_metrics_by_hand():
         gap_metrics(student, expert * np.nan)
 
 
+def test_imitation_selection_metrics_by_hand():
+    from shield_nav.imitation import selection_metrics
+
+    # Two envs, three steps, two candidates of one action value. Env 1's episode ends at step 0, so its change of
+    # candidate into step 1 is not a switch.
+    cands = np.array([[[0.0, 1.0], [0.5, -0.5]], [[0.0, 1.0], [0.5, -0.5]], [[0.2, 1.0], [0.4, -0.5]]])[..., None]
+    scores = np.array([[[1.0, 0.0], [0.0, 0.0]], [[0.0, 2.0], [0.0, 1.0]], [[3.0, 0.0], [0.0, 1.5]]])
+    expert = np.array([[0.9, 0.5], [0.9, 0.5], [0.0, -0.5]])[..., None]
+    dones = np.array([[False, True], [False, False], [False, False]])
+    res = selection_metrics(cands, scores, expert, dones)
+    # Flown: env 0 candidates 0, 1, 0; env 1 candidates 0 (a tie: the first), 1, 1.
+    # Squared errors (flown / nearest): env 0 0.81 / 0.01, 0.01 / 0.01, 0.04 / 0.04; env 1 0 / 0, 1 / 0, 0 / 0.
+    assert res["samples"] == 6 and res["candidates"] == 2
+    assert res["nearest_share"] == pytest.approx(4 / 6)
+    assert res["chosen_mse"] == pytest.approx(1.86 / 6)
+    assert res["nearest_mse"] == pytest.approx(0.06 / 6)
+    assert res["uniform_mse"] == pytest.approx(5.49 / 12)
+    # Score gaps 1, 2, 3 and 0, 1, 1.5.
+    assert res["score_gap_median"] == pytest.approx(1.25) and res["score_gap_below_0_5"] == pytest.approx(1 / 6)
+    # Three steps follow a step of their episode; env 0 changes on both (jumps 1.0 and 0.8), env 1 stays (jump 0).
+    assert res["switch_rate"] == pytest.approx(2 / 3)
+    assert res["jump_switch"] == pytest.approx(0.9) and res["jump_stay"] == pytest.approx(0.0)
+    assert res["share"] == pytest.approx([0.5, 0.5])
+    with pytest.raises(ValueError, match="K >= 2"):
+        selection_metrics(cands[:, :, :1], scores[:, :, :1], expert, dones)
+    with pytest.raises(ValueError, match="finite"):
+        selection_metrics(cands, scores * np.nan, expert, dones)
+    with pytest.raises(ValueError, match=r"dones \(T, N\)"):
+        selection_metrics(cands, scores, expert, dones[:2])
+
+
 def test_imitation_cli_on_the_committed_student():
     import json
     import subprocess
@@ -375,6 +406,14 @@ def test_imitation_cli_on_the_committed_student():
     assert sum(sub["samples"] for sub in out["split"].values()) == 80
     if "away" in out["split"]:
         assert out["split"]["away"]["samples"] == pytest.approx(80 * out["away_share"])
+    # The committed student has three candidates and flies the best-scored one: the candidate choice's "flown" error
+    # is the imitation error above, and no choice beats always taking the nearest candidate.
+    sel = out["selection"]
+    assert sel["samples"] == 80 and sel["candidates"] == 3
+    assert sel["chosen_mse"] == pytest.approx(out["mse"], rel=1e-5)
+    assert sel["nearest_mse"] <= min(sel["chosen_mse"], sel["uniform_mse"])
+    assert 0.0 <= sel["nearest_share"] <= 1.0 and 0.0 <= sel["switch_rate"] <= 1.0
+    assert sum(sel["share"]) == pytest.approx(1.0)
     res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr

@@ -15,6 +15,7 @@ from envs.camera import DepthCamera, DepthNoise, min_pool, normalize_depth
 from envs.config import load_config
 from envs.fields import scene_field_stack
 from envs.fields.anchors import GoalAnchorFields
+from envs.navigation import interface as I
 from envs.navigation import rewards as R
 from envs.navigation.config import CIRCLE_TURNS, CIRCLE_WINDOW_S, REWARD_TERMS, NavConfig
 from envs.navigation.memory import SceneMemory
@@ -338,8 +339,7 @@ class NavigationEnv(VectorEnv):
     @property
     def headings(self) -> np.ndarray:
         """Heading of every vehicle (N,) [rad]: the yaw of the body x axis, the camera's axis on the ground."""
-        r = self.vehicles.R_wb
-        return np.arctan2(r[:, 1, 0], r[:, 0, 0])
+        return I.headings(self.vehicles.R_wb)
 
     @property
     def yaw_bases(self) -> np.ndarray:
@@ -349,31 +349,15 @@ class NavigationEnv(VectorEnv):
         heading below ``yaw_base_speed`` (weight ``min(|v_h| / yaw_base_speed, 1)`` on the wrapped difference), so
         the base is continuous through hover and equal to the heading at rest.
         """
-        a_cfg, heading = self.cfg.action, self.headings
-        if a_cfg.yaw_base == "heading":
-            return heading
-        v = self.vehicles.vel_w
-        speed = np.hypot(v[:, 0], v[:, 1])
-        diff = (np.arctan2(v[:, 1], v[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi
-        return heading + np.minimum(speed / a_cfg.yaw_base_speed, 1.0) * diff
+        return I.yaw_bases(self.cfg.action, self.vehicles.R_wb, self.vehicles.vel_w)
 
     def action_to_command(self, action: np.ndarray) -> np.ndarray:
         """Map normalised actions (N, 4) to vehicle commands (N, 4) = [f_n, phi, theta, psi] (see class doc)."""
-        a_cfg, g = self.cfg.action, self.cfg.vehicle.gravity
-        a0 = action[:, 0]
-        f_n = np.where(a0 >= 0, g + a0 * (a_cfg.thrust_max - g), g + a0 * (g - a_cfg.thrust_min))
-        tilt = math.radians(a_cfg.max_tilt_deg)
-        psi = self.yaw_bases + action[:, 3] * math.radians(a_cfg.yaw_range_deg)
-        return np.stack((f_n, action[:, 1] * tilt, action[:, 2] * tilt, psi), axis=1)
+        return I.action_to_command(action, self.yaw_bases, self.cfg.action, self.cfg.vehicle.gravity)
 
     def command_to_action(self, command: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`action_to_command` at the current yaw bases (unclipped). (N, 4) -> (N, 4)."""
-        a_cfg, g = self.cfg.action, self.cfg.vehicle.gravity
-        f_n = command[:, 0]
-        a0 = np.where(f_n >= g, (f_n - g) / (a_cfg.thrust_max - g), (f_n - g) / (g - a_cfg.thrust_min))
-        tilt = math.radians(a_cfg.max_tilt_deg)
-        d_psi = (command[:, 3] - self.yaw_bases + np.pi) % (2 * np.pi) - np.pi
-        return np.stack((a0, command[:, 1] / tilt, command[:, 2] / tilt, d_psi / math.radians(a_cfg.yaw_range_deg)), 1)
+        return I.command_to_action(command, self.yaw_bases, self.cfg.action, self.cfg.vehicle.gravity)
 
     def _update_fields(self) -> None:
         """Privileged fields at the current vehicle positions (scene frame)."""
@@ -504,23 +488,7 @@ class NavigationEnv(VectorEnv):
 
     def _state(self, pos: np.ndarray, r_wb: np.ndarray, vel_b: np.ndarray) -> np.ndarray:
         """The (N, 21) state vector of :data:`STATE_LAYOUT` from the given (possibly noisy) quantities."""
-        psi = np.arctan2(r_wb[:, 1, 0], r_wb[:, 0, 0])
-        d = self.goal_buf[:, :2] - pos[:, :2]
-        c, s = np.cos(psi), np.sin(psi)
-        d_h = np.stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]), axis=1)  # Rz(-psi) d
-        d_h /= np.maximum(np.linalg.norm(d_h, axis=1, keepdims=True), 10.0)
-        return np.concatenate(
-            (
-                vel_b / 10.0,
-                r_wb.reshape(self.num_envs, 9),
-                self.exec_action_buf,
-                d_h,
-                pos[:, 2:3] / 3.0,
-                self.goal_buf[:, 2:3] / 3.0,
-                self.target_speed_buf[:, None] / 10.0,
-            ),
-            axis=1,
-        )
+        return I.policy_state(pos, r_wb, vel_b, self.exec_action_buf, self.goal_buf, self.target_speed_buf)
 
     # ================================================================================================ resets
     def _reset_idx(

@@ -1,0 +1,255 @@
+"""Fly an exported depth policy behind the HOCBF shield, one 10 ms control step at a time: the loop a vehicle runs.
+
+The Full row of the paper is a depth policy whose every command passes the safety shield before the attitude loop
+flies it. :class:`ShieldedPilot` is that loop without the simulator: it takes what a vehicle's own sensors and state
+estimate give (the metric depth image, position, velocity, attitude) and returns the attitude-thrust command for
+the PX4-style inner loop::
+
+    from shield_nav.deploy import ShieldedPilot
+
+    pilot = ShieldedPilot.load("checkpoints/full")           # policy.onnx + its training config, default shield
+    pilot.reset(goal=[[60.0, 0.0, 1.5]], target_speed=5.0)   # one vehicle; a frame with z up from the ground
+    while flying:                                            # every 10 ms
+        out = pilot.step(depth_m, pos, vel_w, R_wb)          # (1, 1, 60, 100) m, (1, 3) m, (1, 3) m/s, (1, 3, 3)
+        send(out.command)                                    # (1, 4): [f_n m/s^2, roll, pitch, yaw rad]
+
+It builds the policy's state vector and reads its action with the functions the env itself uses
+(:mod:`envs.navigation.interface`), with the action, camera and vehicle settings the policy was trained with, and
+filters with the same :class:`~shield_nav.shield.HOCBFShield` as ``eval.py``'s shielded rows, so a flight flown
+through it is the evaluation's flight (tested trial for trial against ``eval.py``'s ``full`` row).
+
+``python -m shield_nav.deploy [CHECKPOINT] [--family benchmark --scene 13 --speed 5]`` flies one simulated flight
+through the pilot alone (the simulator only supplies the sensor readings and flies the commands) and reports the
+outcome and what one control step costs, policy and shield apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+
+from envs.camera import normalize_depth
+from envs.config import load_config
+from envs.navigation import interface as I
+from envs.navigation.config import NavConfig
+from shield_nav.evaluation.policies import LoadedPolicy, load_policy
+from shield_nav.shield import HOCBFShield, ShieldConfig, ShieldOutput
+
+__all__ = ["PilotStep", "ShieldedPilot"]
+
+
+@dataclasses.dataclass
+class PilotStep:
+    """One control step of :class:`ShieldedPilot` for N vehicles."""
+
+    command: np.ndarray
+    """The command to fly (N, 4) = [f_n m/s^2, roll, pitch, yaw rad]: the shield's output, or the policy's own
+    command without a shield."""
+    action: np.ndarray
+    """The policy's normalised action (N, 4), clipped to [-1, 1], before the shield."""
+    shield: ShieldOutput | None
+    """The shield's full output (activity, correction, QP status, timing); None without a shield."""
+    policy_us: float
+    """Wall time of the policy network for the batch [us]."""
+
+
+class ShieldedPilot:
+    """An exported depth CNN+GRU policy behind the HOCBF shield, for N vehicles, one control step per call.
+
+    Args:
+        policy: The policy (:func:`shield_nav.evaluation.policies.load_policy`). Its training config, found beside
+            the export, gives the action mapping, the camera and the vehicle's gravity; a policy that reads more
+            than the state vector and the image (a scene memory or a clock input) is refused.
+        shield: The shield's settings; True (default): :class:`ShieldConfig`'s defaults, the shield of ``eval.py``'s
+            Full row; False: the policy flies alone.
+        num_vehicles: N.
+
+    Raises:
+        ValueError: the policy reads other inputs, or the shield asks to choose among hypotheses (``hypotheses``
+            other than ``top``, which needs the policy's candidates; ``eval.py`` flies that).
+    """
+
+    def __init__(self, policy: LoadedPolicy, shield: ShieldConfig | bool = True, num_vehicles: int = 1) -> None:  # noqa: D107
+        info = policy.info
+        if not isinstance(shield, (bool, ShieldConfig)):
+            raise TypeError(f"shield: {shield!r}; give a ShieldConfig, True (the default shield) or False (none)")
+        shield = ShieldConfig() if shield is True else (None if shield is False else shield)
+        if tuple(info.state_groups) != ("state",):
+            raise ValueError(f"policy {info.path!r} reads the observation groups {list(info.state_groups)}; the "
+                             "pilot builds only the state vector ('state') and the depth image")  # fmt: skip
+        train_env = dict(info.train_env or {})
+        if train_env.get("scene_memory", {}).get("enabled") or train_env.get("episode", {}).get("clock_input"):
+            raise ValueError(f"policy {info.path!r} reads a scene memory or a clock input; the pilot gives neither")
+        if shield is not None and shield.hypotheses != "top":
+            raise ValueError(f"shield.hypotheses: {shield.hypotheses!r}; the pilot filters the policy's own action "
+                             "('top'); eval.py flies the other choices")  # fmt: skip
+        if num_vehicles < 1:
+            raise ValueError(f"num_vehicles: {num_vehicles}; must be >= 1")
+        nav = load_config(NavConfig, overrides=train_env) if train_env else NavConfig()
+        self.policy = policy
+        self.action_cfg = nav.action
+        self.camera = nav.camera
+        self.gravity = float(nav.vehicle.gravity)
+        self.num_vehicles = n = int(num_vehicles)
+        self.shield = HOCBFShield(shield, self.camera) if shield is not None else None
+        self.goal = np.full((n, 3), np.nan)
+        self.target_speed = np.full(n, np.nan)
+        self.prev_action = np.zeros((n, 4))
+        self.h = policy.initial_state(n)
+
+    @classmethod
+    def load(cls, path: str, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
+             network: str = "export") -> ShieldedPilot:  # fmt: skip
+        """A pilot for the policy at ``path``, read by :func:`load_policy`.
+
+        ``path``: a ``checkpoints/<name>`` folder, a run's ``exported/policy.onnx``, or with ``network="fixed_order"``
+        a training checkpoint.
+        """
+        return cls(load_policy(path, "pilot", network), shield, num_vehicles)
+
+    def reset(self, goal: Any, target_speed: Any, ids: Any = None) -> None:
+        """Start flights for vehicles ``ids`` (all if None): their goal (M, 3) [m] and target speed (M,) or one [m/s].
+
+        Zeroes their recurrent state and previous action and clears their shield memory, as a new episode does.
+        """
+        sel = np.arange(self.num_vehicles) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        goal = np.broadcast_to(np.asarray(goal, dtype=np.float64), (len(sel), 3))
+        speed = np.broadcast_to(np.asarray(target_speed, dtype=np.float64), (len(sel),))
+        if not (np.isfinite(goal).all() and np.isfinite(speed).all() and (speed > 0).all()):
+            raise ValueError(f"reset: goal {goal.tolist()} and target_speed {speed.tolist()} must be finite, speed > 0")
+        self.goal[sel] = goal
+        self.target_speed[sel] = speed
+        self.prev_action[sel] = 0.0
+        self.h[:, sel] = 0.0
+        if self.shield is not None:
+            self.shield.reset(sel)
+
+    def step(self, depth_m: np.ndarray, pos: np.ndarray, vel_w: np.ndarray, R_wb: np.ndarray) -> PilotStep:  # noqa: N803
+        """One control step for all N vehicles.
+
+        Args:
+            depth_m: Metric depth images (N, 1, H, W) [m] as the camera reports them (0 or non-finite: no return).
+            pos: Positions (N, 3) [m] in the goal's frame, z the height above the ground.
+            vel_w: Velocities (N, 3) [m/s] in that frame.
+            R_wb: Attitudes (N, 3, 3), body -> that frame.
+
+        Returns:
+            The command to fly, the policy's action and the shield's output. The command's normalised equivalent is
+            the next step's previous-action input, as in the env.
+        """
+        n = self.num_vehicles
+        if np.isnan(self.target_speed).any():
+            raise RuntimeError("call reset(goal, target_speed) before step()")
+        shapes = {"depth_m": (depth_m, (n, *self.policy.info.depth_shape)), "pos": (pos, (n, 3)),
+                  "vel_w": (vel_w, (n, 3)), "R_wb": (R_wb, (n, 3, 3))}  # fmt: skip
+        for name, (arr, shape) in shapes.items():
+            if np.shape(arr) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {np.shape(arr)}")
+        for name in ("pos", "vel_w", "R_wb"):
+            if not np.isfinite(shapes[name][0]).all():
+                raise ValueError(f"{name} is not finite: {np.asarray(shapes[name][0]).tolist()}")
+        vel_b = np.einsum("nji,nj->ni", R_wb, vel_w)  # R_wb^T v_w, as the vehicle model computes it
+        state = I.policy_state(pos, R_wb, vel_b, self.prev_action, self.goal, self.target_speed).astype(np.float32)
+        depth = normalize_depth(depth_m, self.camera)
+        t0 = time.perf_counter()
+        act, self.h = self.policy.step(state, depth, self.h)
+        policy_us = (time.perf_counter() - t0) * 1e6
+        if not np.isfinite(act).all():
+            raise FloatingPointError(f"the policy returned a non-finite action for vehicle(s) "
+                                     f"{np.flatnonzero(~np.isfinite(act).all(axis=1)).tolist()}")  # fmt: skip
+        act = np.clip(act, -1.0, 1.0)
+        base = I.yaw_bases(self.action_cfg, R_wb, vel_w)
+        cmd = I.action_to_command(act, base, self.action_cfg, self.gravity)
+        out = None
+        if self.shield is not None:
+            out = self.shield.filter(cmd, pos, vel_w, depth=depth_m, R_wb=R_wb, ids=np.arange(n))
+            cmd = out.command
+            self.prev_action = np.clip(I.command_to_action(cmd, base, self.action_cfg, self.gravity), -1.0, 1.0)
+        else:
+            self.prev_action = act
+        return PilotStep(cmd, act, out, policy_us)
+
+
+def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw: float, seed: int = 0) -> dict:
+    """Fly one flight of a one-vehicle ``env`` (a ``NavigationEnv`` without autoreset) with ``pilot`` alone.
+
+    The env only renders the sensor's image and flies the pilot's commands. Returns the outcome, the step count,
+    the mean speed, the shield's active share and the per-step costs [us].
+    """
+    obs, _ = env.reset(seed=seed, options={"scene_ids": np.zeros(1, np.int64), "start": np.asarray([start]),
+                                           "goal": np.asarray([goal]), "speed": np.full(1, speed),
+                                           "yaw": np.full(1, yaw)})  # fmt: skip
+    pilot.reset(env.goal_buf, speed)
+    steps, speeds, active, policy_us, shield_us, outcome = 0, [], 0, [], [], ""
+    while not outcome:
+        out = pilot.step(env.sensor_depth_buf, env.local_pos, env.vehicles.vel_w, env.vehicles.R_wb)
+        policy_us.append(out.policy_us)
+        if out.shield is not None:
+            active += int(out.shield.active[0])
+            shield_us.append(float(out.shield.total_us[0]))
+        obs, _, _, _, info = env.step(out.action, commands=out.command)
+        steps += 1
+        speeds.append(float(np.linalg.norm(env.vehicles.vel_w[0])))
+        for name, key in (("success", "success"), ("collision", "collision"), ("out_of_bounds", "out_of_bounds"),
+                          ("timeout", "time_outs")):  # fmt: skip
+            if info[key][0] and not outcome:
+                outcome = name
+    return {"outcome": outcome, "steps": steps, "mean_speed": float(np.mean(speeds)),
+            "shield_active": active / steps if shield_us else None,
+            "policy_us": np.asarray(policy_us), "shield_us": np.asarray(shield_us)}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Fly one simulated flight through :class:`ShieldedPilot` and print its outcome and per-step cost."""
+    from envs.navigation import NavigationEnv
+    from envs.scenes import make_scene
+    from shield_nav.evaluation.rollout import sample_trial, trial_seed
+
+    p = argparse.ArgumentParser(prog="python -m shield_nav.deploy", description=__doc__.splitlines()[0])
+    p.add_argument("checkpoint", nargs="?", default="checkpoints/full", help="policy folder or file (default: Full)")
+    p.add_argument("--family", default="benchmark", help="scene family (default: benchmark, Table II's held out)")
+    p.add_argument("--scene", type=int, default=0, help="scene index in the family")
+    p.add_argument("--speed", type=float, default=5.0, help="target speed [m/s]")
+    p.add_argument("--trial", type=int, default=0, help="which pinned trial of eval.py's seed 0 to fly")
+    p.add_argument("--no-shield", action="store_true", help="fly the policy alone")
+    args = p.parse_args(argv)
+    pilot = ShieldedPilot.load(args.checkpoint, not args.no_shield)
+    overrides = {"num_envs": 1, "scenes.family": args.family, "scenes.indices": [args.scene],
+                 "curriculum.enabled": False, "autoreset": False, "episode.target_speeds": [args.speed],
+                 "episode.speed_range": [], "episode.timeout_factor": 1.5}  # the tables' time limit  # fmt: skip
+    train_env = pilot.policy.info.train_env
+    nav = load_config(NavConfig, overrides=overrides,
+                      base=load_config(NavConfig, overrides=train_env) if train_env else None)  # fmt: skip
+    nav.randomization.disable()  # clean sensor, nominal vehicle: the tables' conditions
+    env = NavigationEnv(config=nav)
+    scene = make_scene(args.family, args.scene)
+    seed = trial_seed(0, args.family, args.scene, args.speed, args.trial)
+    trial = sample_trial(scene, env.field_stack, 0, seed, nav.vehicle.airframe.collision_radius + 0.4)
+    r = fly(pilot, env, trial["start"], trial["goal"], args.speed, trial["yaw"], seed % (2**31))
+    env.close()
+    shielded = "alone" if args.no_shield else "behind the shield"
+    print(f"{args.checkpoint} {shielded}, {args.family} scene {args.scene}, {args.speed:g} m/s, trial {args.trial}: "
+          f"{r['outcome']} after {r['steps'] / 100:.2f} s at {r['mean_speed']:.2f} m/s on average")  # fmt: skip
+    pu = r["policy_us"]
+    print(
+        f"per 10 ms control step: policy {pu.mean():.0f} us mean, {np.percentile(pu, 99):.0f} us p99 "
+        f"({pilot.policy.info.kind})",
+        end="",
+    )
+    if len(r["shield_us"]):
+        su = r["shield_us"]
+        print(
+            f"; shield {su.mean():.0f} us mean, {np.percentile(su, 99):.0f} us p99, acting on "
+            f"{100 * r['shield_active']:.1f} % of the steps"
+        )
+    else:
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

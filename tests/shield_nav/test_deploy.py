@@ -1,0 +1,127 @@
+"""The deployment loop (`shield_nav.deploy`): the policy's interface by hand, and the pilot against eval.py's flight."""
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import shield_nav.evaluation as E
+from envs.navigation import NavigationEnv
+from envs.navigation import interface as I
+from envs.navigation.config import ActionConfig
+from shield_nav.deploy import ShieldedPilot, fly
+from shield_nav.evaluation.rollout import flown_scene, nav_config, sample_trial, trial_seed
+from shield_nav.shield import ShieldConfig
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+FULL = os.path.join(ROOT, "checkpoints", "full")
+G = 9.81
+
+
+def _yaw(psi):
+    c, s = math.cos(psi), math.sin(psi)
+    return np.array([[[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]])
+
+
+def test_policy_state_by_hand():
+    # Heading 90 deg (body x along world +y), at (0, 0, 1.5), goal (0, 20, 3): the offset (0, 20) seen from the
+    # heading frame is 20 m straight ahead, so goal_xy_h = (20, 0) / max(20, 10) = (1, 0); z 1.5 / 3 = 0.5,
+    # z_goal 3 / 3 = 1, speed 5 / 10 = 0.5. Close by (5 m to the vehicle's left) the offset is not normalised to
+    # 1: (0, 5) / max(5, 10) = (0, 0.5).
+    R = _yaw(math.pi / 2)
+    prev = np.array([[0.1, -0.2, 0.3, -0.4]])
+    s = I.policy_state(np.array([[0.0, 0.0, 1.5]]), R, np.array([[2.0, 0.0, -1.0]]), prev,
+                       np.array([[0.0, 20.0, 3.0]]), np.array([5.0]))  # fmt: skip
+    assert s.shape == (1, 21)
+    np.testing.assert_allclose(s[0, 0:3], [0.2, 0.0, -0.1])
+    np.testing.assert_array_equal(s[0, 3:12], R.reshape(9))
+    np.testing.assert_array_equal(s[0, 12:16], prev[0])
+    np.testing.assert_allclose(s[0, 16:18], [1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(s[0, 18:21], [0.5, 1.0, 0.5])
+    near = I.policy_state(np.zeros((1, 3)), _yaw(0.0), np.zeros((1, 3)), np.zeros((1, 4)), np.array([[0.0, 5.0, 0.0]]),
+                          np.array([3.0]))  # fmt: skip
+    np.testing.assert_allclose(near[0, 16:18], [0.0, 0.5])
+
+
+def test_action_command_mapping_by_hand():
+    cfg = ActionConfig()  # thrust 2 .. 25 m/s^2, tilt 45 deg, yaw lead 60 deg, from the heading
+    base = np.array([0.3, 0.3, 0.3])
+    a = np.array([[0.0, 0.0, 0.0, 0.0], [1.0, 0.5, -0.5, 1.0], [-1.0, -1.0, 1.0, -0.5]])
+    cmd = I.action_to_command(a, base, cfg, G)
+    # 0 -> hover thrust g; +1 -> 25; -1 -> 2; 0.5 x 45 deg = 22.5 deg; yaw 0.3 rad + 60 deg / -30 deg
+    expect = np.array([[G, 0.0, 0.0, 0.3],
+                       [25.0, math.radians(22.5), -math.radians(22.5), 0.3 + math.radians(60)],
+                       [2.0, -math.radians(45), math.radians(45), 0.3 - math.radians(30)]])  # fmt: skip
+    np.testing.assert_allclose(cmd, expect, atol=1e-12)
+    np.testing.assert_allclose(I.command_to_action(cmd, base, cfg, G), a, atol=1e-12)
+    # Half-way thrusts: 0.5 -> g + 0.5 (25 - g); -0.5 -> g - 0.5 (g - 2)
+    half = I.action_to_command(np.array([[0.5, 0, 0, 0], [-0.5, 0, 0, 0]]), base[:2], cfg, G)[:, 0]
+    np.testing.assert_allclose(half, [G + 0.5 * (25 - G), G - 0.5 * (G - 2)])
+    # The velocity yaw base: moving along +y at 2 m/s (above yaw_base_speed 1) with heading 0 leads from 90 deg;
+    # at 0.5 m/s, half-way (45 deg); at rest, from the heading.
+    vcfg = ActionConfig(yaw_base="velocity")
+    R = np.repeat(_yaw(0.0), 3, axis=0)
+    v = np.array([[0.0, 2.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(I.yaw_bases(vcfg, R, v), [math.pi / 2, math.pi / 4, 0.0], atol=1e-15)
+    np.testing.assert_array_equal(I.yaw_bases(cfg, R, v), np.zeros(3))
+
+
+@pytest.fixture(scope="module")
+def eval_full_trial():
+    """eval.py's Full row (onnxruntime, default shield), one pinned trial on an ablation scene at 9 m/s."""
+    cfg = E.load_eval_config(None, ["name=deploy", "configurations=[full]", "scenes.family=ablation",
+                                    "scenes.indices=[7]", "speeds=[9.0]", "trials_per_scene=1", "plots=false",
+                                    "network=export", "env_overrides=[episode.timeout_factor=1.5]"])  # fmt: skip
+    (spec,) = E.plan_units(E.prepare(cfg))
+    return cfg, spec, E.run_unit(spec)["trials"][0]
+
+
+def test_pilot_flies_evals_full_flight_step_for_step(eval_full_trial):
+    """The pilot alone (state vector, action mapping and shield outside the env) flies eval.py's Full trial: the
+    same outcome, step count, shield activity and end point."""
+    cfg, spec, rec = eval_full_trial
+    env = NavigationEnv(config=nav_config(cfg, spec.family, spec.index, spec.speed, 1, spec.policy_env))
+    seed = trial_seed(cfg.seed, spec.family, spec.index, spec.speed, 0)
+    trial = sample_trial(flown_scene(cfg, spec.family, spec.index), env.field_stack, 0, seed,
+                         env.cfg.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
+    assert trial["start"] == rec["start"] and trial["goal"] == rec["goal"]
+    pilot = ShieldedPilot.load(FULL)
+    r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31))
+    assert (r["outcome"], r["steps"]) == (rec["outcome"], rec["steps"])
+    assert round(r["shield_active"] * r["steps"]) == rec["shield"]["active_steps"] > 0
+    np.testing.assert_array_equal(np.round(env.local_pos[0], 3), rec["traj"][-1][:3])
+    env.close()
+
+
+def test_pilot_refuses_bad_input():
+    pilot = ShieldedPilot.load(FULL, num_vehicles=2)
+    depth, pos, vel, R = np.full((2, 1, 60, 100), 5.0), np.ones((2, 3)), np.zeros((2, 3)), np.repeat(_yaw(0), 2, 0)
+    with pytest.raises(RuntimeError, match="call reset"):
+        pilot.step(depth, pos, vel, R)
+    with pytest.raises(ValueError, match="target_speed"):
+        pilot.reset([[60.0, 0.0, 1.5]], [5.0, -1.0])
+    pilot.reset([[60.0, 0.0, 1.5]], 5.0)
+    with pytest.raises(ValueError, match=r"depth_m must have shape \(2, 1, 60, 100\)"):
+        pilot.step(depth[:, :, :30], pos, vel, R)
+    bad = pos.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="pos is not finite"):
+        pilot.step(depth, bad, vel, R)
+    out = pilot.step(depth, pos, vel, R)  # a wall 5 m ahead, hovering: a finite command per vehicle
+    assert out.command.shape == (2, 4) and np.isfinite(out.command).all() and out.shield is not None
+    with pytest.raises(ValueError, match="hypotheses"):
+        ShieldedPilot(pilot.policy, ShieldConfig(hypotheses="first_clean"))
+    with pytest.raises(TypeError, match="shield"):
+        ShieldedPilot(pilot.policy, {"r_safe": 0.3})
+
+
+def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
+    _, _, rec = eval_full_trial
+    out = subprocess.run([sys.executable, "-m", "shield_nav.deploy", FULL, "--family", "ablation", "--scene", "7",
+                          "--speed", "9"], capture_output=True, text=True, cwd=ROOT, timeout=300)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert f"{rec['outcome']} after {rec['steps'] / 100:.2f} s" in out.stdout
+    assert "per 10 ms control step: policy" in out.stdout and "shield" in out.stdout

@@ -178,15 +178,18 @@ def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw
     """Fly one flight of a one-vehicle ``env`` (a ``NavigationEnv`` without autoreset) with ``pilot`` alone.
 
     The env only renders the sensor's image and flies the pilot's commands. Returns the outcome, the step count,
-    the mean speed, the shield's active share and the per-step costs [us].
+    the mean speed, the shield's active share and the per-step costs [us]: the policy network, the shield, and the
+    whole :meth:`ShieldedPilot.step` (state, network, mapping, shield).
     """
     obs, _ = env.reset(seed=seed, options={"scene_ids": np.zeros(1, np.int64), "start": np.asarray([start]),
                                            "goal": np.asarray([goal]), "speed": np.full(1, speed),
                                            "yaw": np.full(1, yaw)})  # fmt: skip
     pilot.reset(env.goal_buf, speed)
-    steps, speeds, active, policy_us, shield_us, outcome = 0, [], 0, [], [], ""
+    steps, speeds, active, policy_us, shield_us, step_us, outcome = 0, [], 0, [], [], [], ""
     while not outcome:
+        t0 = time.perf_counter()
         out = pilot.step(env.sensor_depth_buf, env.local_pos, env.vehicles.vel_w, env.vehicles.R_wb)
+        step_us.append((time.perf_counter() - t0) * 1e6)
         policy_us.append(out.policy_us)
         if out.shield is not None:
             active += int(out.shield.active[0])
@@ -198,17 +201,48 @@ def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw
                           ("timeout", "time_outs")):  # fmt: skip
             if info[key][0] and not outcome:
                 outcome = name
-    return {"outcome": outcome, "steps": steps, "mean_speed": float(np.mean(speeds)),
+    return {"outcome": outcome, "steps": steps, "duration_s": steps * env.cfg.vehicle.command_dt,
+            "mean_speed": float(np.mean(speeds)),
             "shield_active": active / steps if shield_us else None,
-            "policy_us": np.asarray(policy_us), "shield_us": np.asarray(shield_us)}  # fmt: skip
+            "policy_us": np.asarray(policy_us), "shield_us": np.asarray(shield_us),
+            "step_us": np.asarray(step_us)}  # fmt: skip
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Fly one simulated flight through :class:`ShieldedPilot` and print its outcome and per-step cost."""
+def fly_trial(pilot: ShieldedPilot, family: str, scene: int, speed: float, trial: int = 0) -> dict:
+    """Fly ``eval.py``'s pinned trial ``trial`` (seed 0) of ``family`` scene ``scene`` at ``speed`` through ``pilot``.
+
+    The tables' conditions: clean sensor, nominal vehicle, time limit 1.5 x the straight-line time + 5 s, the
+    policy's training ``action``, ``camera`` and ``vehicle`` sections. Returns :func:`fly`'s record.
+    """
     from envs.navigation import NavigationEnv
     from envs.scenes import make_scene
     from shield_nav.evaluation.rollout import sample_trial, trial_seed
 
+    if pilot.num_vehicles != 1:
+        raise ValueError(f"fly_trial flies one vehicle; the pilot has {pilot.num_vehicles}")
+    overrides = {"num_envs": 1, "scenes.family": family, "scenes.indices": [scene], "curriculum.enabled": False,
+                 "autoreset": False, "episode.target_speeds": [speed], "episode.speed_range": [],
+                 "episode.timeout_factor": 1.5}  # fmt: skip
+    train_env = pilot.policy.info.train_env
+    nav = load_config(NavConfig, overrides=overrides,
+                      base=load_config(NavConfig, overrides=train_env) if train_env else None)  # fmt: skip
+    nav.randomization.disable()
+    env = NavigationEnv(config=nav)
+    try:
+        seed = trial_seed(0, family, scene, speed, trial)
+        tr = sample_trial(make_scene(family, scene), env.field_stack, 0, seed,
+                          nav.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
+        return fly(pilot, env, tr["start"], tr["goal"], speed, tr["yaw"], seed % (2**31))
+    finally:
+        env.close()
+
+
+def _mean_p99(us: np.ndarray) -> str:
+    return f"{us.mean():.0f} / {np.percentile(us, 99):.0f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Fly one simulated flight through :class:`ShieldedPilot` and print its outcome and per-step cost."""
     p = argparse.ArgumentParser(prog="python -m shield_nav.deploy", description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", nargs="?", default="checkpoints/full", help="policy folder or file (default: Full)")
     p.add_argument("--family", default="benchmark", help="scene family (default: benchmark, Table II's held out)")
@@ -218,33 +252,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-shield", action="store_true", help="fly the policy alone")
     args = p.parse_args(argv)
     pilot = ShieldedPilot.load(args.checkpoint, not args.no_shield)
-    overrides = {"num_envs": 1, "scenes.family": args.family, "scenes.indices": [args.scene],
-                 "curriculum.enabled": False, "autoreset": False, "episode.target_speeds": [args.speed],
-                 "episode.speed_range": [], "episode.timeout_factor": 1.5}  # the tables' time limit  # fmt: skip
-    train_env = pilot.policy.info.train_env
-    nav = load_config(NavConfig, overrides=overrides,
-                      base=load_config(NavConfig, overrides=train_env) if train_env else None)  # fmt: skip
-    nav.randomization.disable()  # clean sensor, nominal vehicle: the tables' conditions
-    env = NavigationEnv(config=nav)
-    scene = make_scene(args.family, args.scene)
-    seed = trial_seed(0, args.family, args.scene, args.speed, args.trial)
-    trial = sample_trial(scene, env.field_stack, 0, seed, nav.vehicle.airframe.collision_radius + 0.4)
-    r = fly(pilot, env, trial["start"], trial["goal"], args.speed, trial["yaw"], seed % (2**31))
-    env.close()
+    r = fly_trial(pilot, args.family, args.scene, args.speed, args.trial)
     shielded = "alone" if args.no_shield else "behind the shield"
     print(f"{args.checkpoint} {shielded}, {args.family} scene {args.scene}, {args.speed:g} m/s, trial {args.trial}: "
-          f"{r['outcome']} after {r['steps'] / 100:.2f} s at {r['mean_speed']:.2f} m/s on average")  # fmt: skip
-    pu = r["policy_us"]
-    print(
-        f"per 10 ms control step: policy {pu.mean():.0f} us mean, {np.percentile(pu, 99):.0f} us p99 "
-        f"({pilot.policy.info.kind})",
-        end="",
-    )
+          f"{r['outcome']} after {r['duration_s']:.2f} s at {r['mean_speed']:.2f} m/s on average")  # fmt: skip
+    print(f"per control step, mean / p99: the whole step {_mean_p99(r['step_us'])} us, of which the policy "
+          f"{_mean_p99(r['policy_us'])} us ({pilot.policy.info.kind})", end="")  # fmt: skip
     if len(r["shield_us"]):
-        su = r["shield_us"]
         print(
-            f"; shield {su.mean():.0f} us mean, {np.percentile(su, 99):.0f} us p99, acting on "
-            f"{100 * r['shield_active']:.1f} % of the steps"
+            f" and the shield {_mean_p99(r['shield_us'])} us, acting on {100 * r['shield_active']:.1f} % of the steps"
         )
     else:
         print()

@@ -124,4 +124,4 @@ def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
                           "--speed", "9"], capture_output=True, text=True, cwd=ROOT, timeout=300)  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert f"{rec['outcome']} after {rec['steps'] / 100:.2f} s" in out.stdout
-    assert "per 10 ms control step: policy" in out.stdout and "shield" in out.stdout
+    assert "per control step, mean / p99: the whole step" in out.stdout and "and the shield" in out.stdout

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 from envs.camera import CameraConfig, DepthNoiseConfig
 from envs.config import require
@@ -160,6 +161,9 @@ class Range:
 class RandomizationConfig:
     """Domain randomization, re-sampled per episode for the envs that reset. Every item can be switched off."""
 
+    PRE_FIELD_VALUES: ClassVar[dict[str, Any]] = {"command_latency": False}
+    """A stored config from before ``command_latency`` flew given commands without the latency (``stored_config``)."""
+
     mass_scale: Range = field(default_factory=lambda: Range(True, 0.9, 1.1))
     """Plant mass scale (the controller keeps the nominal mass)."""
     inertia_scale: Range = field(default_factory=lambda: Range(True, 0.85, 1.15))
@@ -174,6 +178,11 @@ class RandomizationConfig:
     """Inner-loop gain scale (attitude P and rate P/I/D together)."""
     action_latency_steps: list[int] = field(default_factory=lambda: [0, 2])
     """Action latency, whole policy steps [lo, hi], sampled per episode."""
+    command_latency: bool = True
+    """The action latency also delays the commands given to ``step(actions, commands=...)`` (the shield's output, a
+    baseline's commands), as it delays the policy's actions; the previous-action observation is then the delayed
+    command's normalised equivalent. False: such commands are flown at once, whatever the latency (the behaviour until
+    2026-12-05, which the shipped Full was trained with; ``configs/train/recipe_full.yaml`` keeps it)."""
     vel_noise_std: float = 0.05
     """Std of Gaussian noise on the observed body velocity [m/s]."""
     att_noise_std_deg: float = 0.5

@@ -185,6 +185,8 @@ class NavigationEnv(VectorEnv):
         self.max_episode_length_buf = np.zeros(n, dtype=np.int64)
         self.phi_prev_buf = np.zeros(n)
         self.action_hist_buf = np.zeros((n, max(cfg.randomization.action_latency_steps) + 1, 4))
+        self.command_hist_buf = np.zeros((n, max(cfg.randomization.action_latency_steps) + 1, 4))
+        """Commands given to ``step`` (newest first), for the latency line (``randomization.command_latency``)."""
         self.latency_buf = np.zeros(n, dtype=np.int64)
         self.exec_action_buf = np.zeros((n, 4))
         self.prev_exec_action_buf = np.zeros((n, 4))
@@ -250,8 +252,9 @@ class NavigationEnv(VectorEnv):
         Shapes: actions (N, 4) -> obs, reward (N,), terminated (N,), truncated (N,), info.
 
         ``commands`` (N, 4) = [f_n, phi, theta, psi], if given, are flown instead of the mapped actions (the
-        evaluation harness passes shield-corrected or baseline commands this way); the previous-action
-        observation then holds their normalised equivalent (:meth:`command_to_action`, clipped to [-1, 1]).
+        evaluation harness passes shield-corrected or baseline commands this way), through the same latency line
+        (``randomization.command_latency``); the previous-action observation then holds the flown command's
+        normalised equivalent (:meth:`command_to_action`, clipped to [-1, 1]).
         """
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
@@ -321,6 +324,14 @@ class NavigationEnv(VectorEnv):
         if commands is None:
             self.exec_action_buf[:] = hist[np.arange(self.num_envs), self.latency_buf]
             cmd = self.action_to_command(self.exec_action_buf)
+        elif cfg.randomization.command_latency and self.command_hist_buf.shape[1] > 1:
+            # The latency line delays the commands as it delays the actions: the command flown now was given
+            # latency steps ago (a fresh episode's history holds the hover command at the start heading).
+            c_hist = self.command_hist_buf
+            c_hist[:, 1:] = c_hist[:, :-1]
+            c_hist[:, 0] = commands
+            cmd = c_hist[np.arange(self.num_envs), self.latency_buf]
+            self.exec_action_buf[:] = np.clip(self.command_to_action(cmd), -1.0, 1.0)
         else:
             self.exec_action_buf[:] = action
             cmd = commands.copy()
@@ -551,6 +562,9 @@ class NavigationEnv(VectorEnv):
         self.ep_speed_buf[env_ids] = 0.0
         self.ep_min_esdf_buf[env_ids] = np.inf
         self.heading_prev_buf[env_ids] = self.headings[env_ids]
+        self.command_hist_buf[env_ids] = 0.0  # the hover command, [g, 0, 0, psi], at the start heading psi
+        self.command_hist_buf[env_ids, :, 0] = cfg.vehicle.gravity
+        self.command_hist_buf[env_ids, :, 3] = self.heading_prev_buf[env_ids, None]
         self.heading_total_buf[env_ids] = 0.0
         self.heading_hist_buf[env_ids] = 0.0
         self.ep_max_turns_buf[env_ids] = 0.0

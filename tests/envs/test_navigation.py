@@ -285,6 +285,41 @@ def test_command_path_round_trips_the_action_mapping():
     np.testing.assert_allclose(env.exec_action_buf, a, atol=1e-12)
 
 
+def test_the_latency_line_delays_given_commands_as_it_delays_actions():
+    """With a latency of 2 steps the command flown at step t is the one given at t - 2 (the hover command at the start
+    heading before that), and the previous-action input is its normalised equivalent; with command_latency off, or
+    without latency, the given command is flown at once."""
+    lag = {**QUIET, "randomization.action_latency_steps": [2, 2]}
+    env = NavigationEnv(num_envs=2, **lag)
+    env.reset(seed=0)
+    psi0 = env.headings.copy()
+    rng = np.random.default_rng(1)
+    given = [env.action_to_command(rng.uniform(-1, 1, (2, 4))) for _ in range(4)]
+    flown = []
+    for cmd in given:
+        base = env.yaw_bases.copy()
+        env.step(np.zeros((2, 4)), commands=cmd)
+        flown.append(env.exec_action_buf.copy())
+        if len(flown) <= 2:  # the hover command [g, 0, 0, psi0]: action 0 thrust and tilt, yaw lead psi0 - base
+            lead = ((psi0 - base + np.pi) % (2 * np.pi) - np.pi) / math.radians(60.0)
+            np.testing.assert_allclose(flown[-1], np.stack((np.zeros(2), np.zeros(2), np.zeros(2), lead), 1),
+                                       atol=1e-12)  # fmt: skip
+        else:  # the command given two steps earlier, at today's yaw base
+            np.testing.assert_allclose(flown[-1], np.clip(env_cmd_to_action(env, given[len(flown) - 3], base), -1, 1))
+    for extra in ({"randomization.command_latency": False}, {"randomization.action_latency_steps": [0, 0]}):
+        now = NavigationEnv(num_envs=2, **{**lag, **extra})
+        now.reset(seed=0)
+        base = now.yaw_bases.copy()
+        now.step(np.zeros((2, 4)), commands=given[0])
+        np.testing.assert_allclose(now.exec_action_buf, np.clip(env_cmd_to_action(now, given[0], base), -1, 1))
+
+
+def env_cmd_to_action(env, cmd, base):
+    from envs.navigation import interface
+
+    return interface.command_to_action(cmd, base, env.cfg.action, env.cfg.vehicle.gravity)
+
+
 def test_velocity_yaw_base_leads_from_the_direction_of_travel():
     env = NavigationEnv(num_envs=4, **QUIET, **{"action.yaw_base": "velocity", "action.yaw_base_speed": 2.0})
     env.reset(seed=0)

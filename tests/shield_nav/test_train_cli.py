@@ -378,8 +378,12 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         full = to_dict(cfg)
         assert {k for k in full if full[k] != base[k]} == {"name", "seed", "env", "shield_in_loop", "shield"}
         assert cfg.shield_in_loop and cfg.seed == 1 and cfg.env.seed == 1
-        # its env differs from the formulation's in the seed and the training time limit only (the evaluation's 1.5 x)
-        assert {k for k in full["env"] if full["env"][k] != base["env"][k]} == {"seed", "episode"}
+        # its env differs from the formulation's in the seed, the training time limit (the evaluation's 1.5 x) and
+        # the shield's commands flown without the action latency, as the shipped run was trained
+        assert {k for k in full["env"] if full["env"][k] != base["env"][k]} == {"seed", "episode", "randomization"}
+        rnd, base_rnd = full["env"]["randomization"], base["env"]["randomization"]
+        assert {k for k in rnd if rnd[k] != base_rnd[k]} == {"command_latency"}
+        assert not cfg.env.randomization.command_latency and base["env"]["randomization"]["command_latency"]
         assert {k for k in full["env"]["episode"] if full["env"]["episode"][k] != base["env"]["episode"][k]} == {
             "timeout_factor"}  # fmt: skip
         assert cfg.env.episode.timeout_factor == 1.5 and base["env"]["episode"]["timeout_factor"] == 2.5

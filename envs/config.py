@@ -15,6 +15,7 @@ import os
 from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -93,6 +94,12 @@ def _overrides_config(overrides: Iterable[str] | Mapping[str, Any]) -> DictConfi
         for item in items:
             if "=" not in item:
                 raise ConfigError(f"override '{item}' is not of the form a.b=value")
+            try:
+                OmegaConf.from_dotlist([item])
+            except yaml.YAMLError as err:  # the value is parsed as YAML: name the item, not the parser's position
+                raise ConfigError(f"override '{item}': its value is not valid YAML ({str(err).splitlines()[0]}); "
+                                  "quote an item of a list that itself holds commas or brackets, e.g. "
+                                  "\"env_overrides=[a=1,'b=[0,0]']\"") from None  # fmt: skip
         return OmegaConf.from_dotlist(items)
     except OmegaConfBaseException as err:
         raise ConfigError(_format_omegaconf_error(err, "overrides")) from None

@@ -167,6 +167,12 @@ def test_bad_input_errors(tmp_path):
         tiny_cfg("baselines.reactive.guidance=straight")
     with pytest.raises(E.ConfigError, match="baselines.oracle.guidance"):
         tiny_cfg("baselines.oracle.guidance=straight")
+    # An unquoted list inside a list is not YAML: the error names the override, and the quoted form loads.
+    nested = "env_overrides=[episode.timeout_factor=1.5,randomization.action_latency_steps=[0,0]]"
+    with pytest.raises(E.ConfigError, match=r"override 'env_overrides=\[episode.*not valid YAML.*quote"):
+        tiny_cfg(nested)
+    quoted = tiny_cfg("env_overrides=[episode.timeout_factor=1.5,'randomization.action_latency_steps=[0,0]']")
+    assert quoted.env_overrides == ["episode.timeout_factor=1.5", "randomization.action_latency_steps=[0,0]"]
     # A missing checkpoint: an error with 'error' (the default) and for explicitly given ones; 'skip' marks the row.
     missing = str(tmp_path / "nowhere")
     with pytest.raises(E.EvalError, match="does not exist"):

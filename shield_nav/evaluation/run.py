@@ -249,6 +249,12 @@ def open_output(prep: Prepared, out_dir: str, argv: list[str] | None = None) -> 
                 f"{out_dir!r} holds results of a different run (config, seed or checkpoints differ); resume needs "
                 f"the same command. Use another --out or delete the folder.{hint}"
             )
+        was_git, now_git = old.get("git") or {}, _git_info()
+        if (was_git.get("rev"), was_git.get("diff_sha256", "")) != (now_git["rev"], now_git["diff_sha256"]):
+            print(f"[eval] resuming {out_dir!r} with other code than its first units were flown with (git "
+                  f"{str(was_git.get('rev'))[:12]}{' + diff' if was_git.get('dirty') else ''} then, "
+                  f"{now_git['rev'][:12]}{' + diff' if now_git['dirty'] else ''} now): if the change moves flights, "
+                  "the table mixes the two; the manifest keeps the first revision", file=sys.stderr)  # fmt: skip
         changed = version_differences(manifest_record(old), manifest_record(arithmetic))
         if changed:
             print(f"[eval] resuming {out_dir!r} with other package versions (or SIMD extensions) than its first units "

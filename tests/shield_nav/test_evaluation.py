@@ -297,7 +297,7 @@ def test_teacher_row_runs_the_privileged_mlp(tmp_path, tiny_teacher):
 
 
 # ----------------------------------------------------------------------------------------------- real tiny runs
-def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
+def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch, capsys):
     out1, out2 = str(tmp_path / "a"), str(tmp_path / "b")
     s1 = E.evaluate(tiny_cfg(), out1, progress=False)
     # Paper-shaped table with the row and the speed columns; every output file; every trial traceable.
@@ -369,8 +369,20 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch):
     prep = E.prepare(tiny_cfg())
     partial = E.write_outputs(prep, out1, E.plan_units(prep))  # what an interrupted run leaves: a marked table
     assert "PARTIAL: 0 of 1 units finished" in partial["markdown"]
+    capsys.readouterr()
     E.evaluate(tiny_cfg(), out1, progress=False)
     assert calls == ["goal_seeking__ablation-07__v9"]
+    assert "other code" not in capsys.readouterr().err  # the same code: no warning
+    # A resume with other code than the folder's first units says so, naming both revisions.
+    man_path = os.path.join(out1, "manifest.json")
+    with open(man_path) as f:
+        man = json.load(f)
+    man["git"] = {"rev": "0123456789abcdef", "dirty": False, "diff_sha256": ""}
+    with open(man_path, "w") as f:
+        json.dump(man, f)
+    E.evaluate(tiny_cfg(), out1, progress=False)
+    err = capsys.readouterr().err
+    assert "with other code than its first units were flown with (git 0123456789ab then," in err
     # Another configuration into the same folder is refused instead of mixing results.
     with pytest.raises(E.EvalError, match="different run"):
         E.evaluate(tiny_cfg("seed=5"), out1, progress=False)

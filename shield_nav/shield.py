@@ -28,10 +28,12 @@ import scipy.sparse as sp
 from envs.camera import CameraConfig, depth_to_points
 from envs.config import require
 from shield_nav.shield_rows import (
+    DEPTH_FILTERS,
     _accel_from_command_1,
     _append_remembered,
     _command_from_accel_1,
     _map_merge,
+    _median_depth,
     _min_margin,
     _rows_min_margin,
     _select,
@@ -218,6 +220,14 @@ class ShieldConfig:
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
     lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Ceiling row")."""
 
+    depth_filter: str = "none"
+    """Pre-filter of each depth image before the shield turns it into points (the policy always sees the image as
+    it comes): ``"none"`` (default; the paper), ``"median_cross"`` (each valid pixel becomes the median of itself and
+    its valid 4-neighbours, a window that keeps one-pixel-wide lines) or ``"median_3x3"`` (its 8-neighbours).
+    Stereo noise grows as z^2 and the shield's rows follow the *nearest* points of each sector, so per-pixel noise
+    pulls the constraints towards the vehicle, and the local map keeps those near outliers for ``map_seconds``
+    (docs/shield.md, "Depth noise")."""
+
     hypotheses: str = "top"
     """Which of a multi-hypothesis policy's candidate commands the shield filters. ``"top"`` (default): the policy's
     own choice, the best-scored candidate, as every policy deploys without a shield. ``"first_clean"``: when the
@@ -229,6 +239,8 @@ class ShieldConfig:
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
+        require(self.depth_filter in DEPTH_FILTERS, f"{prefix}depth_filter",
+                f"must be one of {list(DEPTH_FILTERS)}, got {self.depth_filter!r}")  # fmt: skip
         require(self.hypotheses in HYPOTHESIS_MODES, f"{prefix}hypotheses",
                 f"must be one of {list(HYPOTHESIS_MODES)}, got {self.hypotheses!r}")  # fmt: skip
         require(self.alpha0 > 0, f"{prefix}alpha0", f"must be > 0, got {self.alpha0}")
@@ -345,6 +357,7 @@ class HOCBFShield:
         self._prev_vel: dict[int, np.ndarray] = {}  # vehicle id -> velocity at its previous call (lag_s)
         self._map: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # vehicle id -> local map: points (M, 3), call stamps
         self._map_calls: dict[int, int] = {}  # vehicle id -> calls since its reset (map_seconds)
+        self._depth_buf: np.ndarray | None = None  # the filtered image (depth_filter), reused per call
         # One image's points followed by the remembered ones, written in place (no per-step allocation or copy).
         cam = self.camera
         self._cloud = np.empty((cam.height * cam.width + cfg.memory_steps * cfg.max_constraints, 3))
@@ -590,6 +603,15 @@ class HOCBFShield:
         ring[head * k : head * k + len(points)] = points
         self._memory_head[vid] = (head + 1) % self.cfg.memory_steps
 
+    def _filtered(self, depth: np.ndarray) -> np.ndarray:
+        """One depth image (any shape of H x W pixels) through ``depth_filter``, into a buffer reused per call."""
+        cam = self.camera
+        d = np.asarray(depth).reshape(cam.height, cam.width)
+        if self._depth_buf is None or self._depth_buf.dtype != d.dtype:
+            self._depth_buf = np.empty((cam.height, cam.width), dtype=d.dtype)
+        _median_depth(d, self._depth_buf, self.cfg.depth_filter == "median_3x3")
+        return self._depth_buf
+
     def map_points(self, vid: int) -> np.ndarray:
         """The points (M, 3) of vehicle ``vid``'s local map (``map_seconds`` > 0); empty if it has none."""
         m = self._map.get(int(vid))
@@ -692,14 +714,17 @@ class HOCBFShield:
             vid = int(ids[i]) if ids is not None else i
             ring = self._memory.get(vid) if self.cfg.memory_steps > 0 else None
             in_cloud = depth is not None and not self.cfg.voxel  # pts: the first rows of self._cloud
+            img = depth[i] if depth is not None else None
+            if img is not None and self.cfg.depth_filter != "none":
+                img = self._filtered(img)
             if in_cloud:
-                pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, out=self._cloud)
+                pts = depth_to_points(img, pos_w[i], R_wb[i], self.camera, out=self._cloud)
                 n_img = len(pts)
                 if ring is not None:  # the remembered points go right after the image's, in the same buffer
                     pts = self._cloud[: _append_remembered(ring, self._cloud, len(pts))]
             else:
                 if depth is not None:
-                    pts = depth_to_points(depth[i], pos_w[i], R_wb[i], self.camera, self.cfg.voxel)
+                    pts = depth_to_points(img, pos_w[i], R_wb[i], self.camera, self.cfg.voxel)
                 else:
                     pts = np.asarray(points_w[i], dtype=np.float64).reshape(-1, 3)
                 n_img = len(pts)

@@ -670,3 +670,51 @@ def _map_merge(img: np.ndarray, old: np.ndarray, old_st: np.ndarray, p: np.ndarr
         out[j, 0], out[j, 1], out[j, 2] = cand[i, 0], cand[i, 1], cand[i, 2]
         out_st[j] = st[i]
     return out, out_st
+
+
+# --------------------------------------------------------------------------------------------- depth pre-filter
+DEPTH_FILTERS = ("none", "median_cross", "median_3x3")
+"""Values of ``ShieldConfig.depth_filter``: the windows of :func:`_median_depth` (none: the image as it comes)."""
+
+
+@nb.njit(cache=True, nogil=True)
+def _median_depth(img: np.ndarray, out: np.ndarray, square: bool) -> None:
+    """Median-filter a depth image (H, W) into ``out`` (H, W) over the valid pixels of each pixel's window.
+
+    The window is the pixel with its 4 neighbours (``square`` False: a cross of 5, which keeps a one-pixel-wide
+    vertical or horizontal line) or its 8 neighbours (True: 3 x 3). Valid pixels read z > 0 (a finite depth; pixels
+    without a return read the far range and take part as far values, so a lone near outlier against the sky is
+    removed). An invalid pixel (0 or NaN) stays as it is and is left out of its neighbours' windows; the median of
+    an even count is the mean of the middle two. Window positions outside the image are left out.
+    """
+    h, w = img.shape
+    buf = np.empty(9)
+    for v in range(h):
+        for u in range(w):
+            z = img[v, u]
+            if not (z > 0.0):  # invalid (0, negative or NaN): kept as is
+                out[v, u] = z
+                continue
+            n = 0
+            for dv in range(-1, 2):
+                vv = v + dv
+                if vv < 0 or vv >= h:
+                    continue
+                for du in range(-1, 2):
+                    if not square and dv != 0 and du != 0:
+                        continue
+                    uu = u + du
+                    if uu < 0 or uu >= w:
+                        continue
+                    x = img[vv, uu]
+                    if x > 0.0:
+                        buf[n] = x
+                        n += 1
+            for i in range(1, n):  # insertion sort of at most 9 values
+                x = buf[i]
+                j = i
+                while j > 0 and buf[j - 1] > x:
+                    buf[j] = buf[j - 1]
+                    j -= 1
+                buf[j] = x
+            out[v, u] = buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])

@@ -1178,3 +1178,65 @@ def test_hypotheses_input_and_config_errors():
         shield.filter(cmd, pos, vel, points_w=pts, alternatives=bad)
     with pytest.raises(ConfigError, match="hypotheses"):
         load_config(ShieldConfig, overrides=["hypotheses=best"])
+
+
+def test_median_depth_filter_by_hand():
+    from shield_nav.shield_rows import _median_depth
+
+    # A 3 x 4 image: a lone near outlier (1.0) on a 5 m wall, a one-pixel-wide vertical pole (2.0) in column 3,
+    # an invalid pixel (0) at (2, 0) and the far range (10) at (0, 0).
+    img = np.array([[10.0, 5.0, 5.0, 2.0], [5.0, 1.0, 5.0, 2.0], [0.0, 5.0, 5.0, 2.0]])
+    cross, square = np.empty_like(img), np.empty_like(img)
+    _median_depth(img, cross, False)
+    _median_depth(img, square, True)
+    # (1, 1): cross window {5, 5, 1, 5, 5} -> 5; 3 x 3 {10, 5, 5, 5, 1, 5, 5, 5} (the 0 left out) -> 5.
+    assert cross[1, 1] == 5.0 and square[1, 1] == 5.0
+    # (0, 0): cross {10, 5, 5} -> 5; 3 x 3 {10, 5, 5, 1} -> (5 + 5) / 2.
+    assert cross[0, 0] == 5.0 and square[0, 0] == 5.0
+    # The pole (1, 3): cross {2, 2, 2, 5} -> (2 + 2) / 2 = 2, kept; 3 x 3 {5, 2, 5, 2, 5, 2} -> (2 + 5) / 2 = 3.5:
+    # the square window does not keep a one-pixel line.
+    assert cross[1, 3] == 2.0 and square[1, 3] == 3.5
+    # The pole's top (0, 3): cross {2, 5, 2} -> 2; 3 x 3 {5, 2, 5, 2} -> 3.5.
+    assert cross[0, 3] == 2.0 and square[0, 3] == 3.5
+    assert cross[2, 0] == 0.0 and square[2, 0] == 0.0  # invalid stays invalid
+    # (2, 1): cross {1, 5, 5} (the 0 left out) -> 5.
+    assert cross[2, 1] == 5.0
+    # Against numpy's median over the valid window on a random image with holes.
+    rng = np.random.default_rng(3)
+    big = rng.uniform(0.5, 9.0, (12, 17))
+    big[rng.random(big.shape) < 0.2] = 0.0
+    for square_win in (False, True):
+        out = np.empty_like(big)
+        _median_depth(big, out, square_win)
+        for v in range(12):
+            for u in range(17):
+                if big[v, u] == 0.0:
+                    assert out[v, u] == 0.0
+                    continue
+                win = [big[v + a, u + b] for a in (-1, 0, 1) for b in (-1, 0, 1)
+                       if 0 <= v + a < 12 and 0 <= u + b < 17 and (square_win or a == 0 or b == 0)]  # fmt: skip
+                assert out[v, u] == pytest.approx(np.median([x for x in win if x > 0.0]))
+
+
+def test_depth_filter_removes_a_lone_near_outlier_from_the_shields_cloud():
+    # A clean wall 6 m ahead, level flight at 5 m/s towards it: the braking barrier leaves the command alone.
+    # One pixel reading 1.2 m (a stereo outlier) makes the unfiltered shield brake hard; the median filters drop it.
+    cam = CameraConfig()
+    depth = np.full((1, 1, cam.height, cam.width), 6.0, dtype=np.float32)
+    noisy = depth.copy()
+    noisy[0, 0, cam.height // 2, cam.width // 2] = 1.2
+    cmd, pos, vel, r_wb = np.array([[G, 0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0, 0]]), None
+    r_wb = np.eye(3)[None]
+    base = {"memory_steps": 0, "map_seconds": 0.0, "lag_s": 0.0, "min_altitude": 0.0}
+    for filt in ("none", "median_cross", "median_3x3"):
+        sh = HOCBFShield(ShieldConfig(depth_filter=filt, **base), cam)
+        clean = sh.filter(cmd, pos, vel, depth=depth, R_wb=r_wb)
+        sh.reset()
+        out = sh.filter(cmd, pos, vel, depth=noisy, R_wb=r_wb)
+        assert not clean.active[0]
+        # braking barrier at 1.2 m: sqrt(2 * 10 * 0.9) = 4.2 m/s of closing speed allowed < 5: the row binds
+        assert out.active[0] == (filt == "none")
+        if filt == "none":
+            assert out.accel_safe[0, 0] < -5.0
+    with pytest.raises(ConfigError, match="depth_filter"):
+        ShieldConfig(depth_filter="gauss").validate()

@@ -250,8 +250,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--speed", type=float, default=5.0, help="target speed [m/s]")
     p.add_argument("--trial", type=int, default=0, help="which pinned trial of eval.py's seed 0 to fly")
     p.add_argument("--no-shield", action="store_true", help="fly the policy alone")
+    p.add_argument("--shield", action="append", default=[], metavar="KEY=VALUE",
+                   help="a shield parameter other than its default, e.g. depth_filter=median_cross (repeatable; "
+                        "docs/shield.md, 'Parameters')")  # fmt: skip
     args = p.parse_args(argv)
-    pilot = ShieldedPilot.load(args.checkpoint, not args.no_shield)
+    if args.shield and args.no_shield:
+        p.error("--shield sets the shield's parameters; it cannot go with --no-shield")
+    shield: bool | ShieldConfig = not args.no_shield
+    if args.shield:
+        shield = load_config(ShieldConfig, overrides=args.shield)  # ConfigError names a bad key or value
+    pilot = ShieldedPilot.load(args.checkpoint, shield)
     r = fly_trial(pilot, args.family, args.scene, args.speed, args.trial)
     shielded = "alone" if args.no_shield else "behind the shield"
     print(f"{args.checkpoint} {shielded}, {args.family} scene {args.scene}, {args.speed:g} m/s, trial {args.trial}: "

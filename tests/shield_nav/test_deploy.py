@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import shield_nav.evaluation as E
+from envs.config import ConfigError
 from envs.navigation import NavigationEnv
 from envs.navigation import interface as I
 from envs.navigation.config import ActionConfig
@@ -125,3 +126,14 @@ def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
     assert out.returncode == 0, out.stderr
     assert f"{rec['outcome']} after {rec['steps'] / 100:.2f} s" in out.stdout
     assert "per control step, mean / p99: the whole step" in out.stdout and "and the shield" in out.stdout
+
+
+def test_deploy_cli_shield_settings_are_checked_before_flying():
+    from shield_nav.deploy import main
+
+    with pytest.raises(ConfigError, match="depth_filter"):
+        main([FULL, "--shield", "depth_filter=gauss"])
+    with pytest.raises(ConfigError, match="no_such_key"):
+        main([FULL, "--shield", "no_such_key=1"])
+    with pytest.raises(SystemExit):  # argparse: --shield with --no-shield
+        main([FULL, "--no-shield", "--shield", "depth_filter=median_cross"])

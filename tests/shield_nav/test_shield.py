@@ -1225,7 +1225,7 @@ def test_depth_filter_removes_a_lone_near_outlier_from_the_shields_cloud():
     depth = np.full((1, 1, cam.height, cam.width), 6.0, dtype=np.float32)
     noisy = depth.copy()
     noisy[0, 0, cam.height // 2, cam.width // 2] = 1.2
-    cmd, pos, vel, r_wb = np.array([[G, 0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0, 0]]), None
+    cmd, pos, vel = np.array([[G, 0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.5]]), np.array([[5.0, 0.0, 0.0]])
     r_wb = np.eye(3)[None]
     base = {"memory_steps": 0, "map_seconds": 0.0, "lag_s": 0.0, "min_altitude": 0.0}
     for filt in ("none", "median_cross", "median_3x3"):

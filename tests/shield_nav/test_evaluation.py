@@ -644,10 +644,11 @@ def test_row_registry_is_yaml_with_the_paper_names_and_rejects_unknown_keys(tmp_
 
 
 def test_rows_that_read_no_image_skip_the_ray_casting_and_fly_the_same_trials(tmp_path):
-    cfg = tiny_cfg("configurations=[oracle,goal_seeking,expert,reactive,shield_only]")
+    cfg = tiny_cfg("configurations=[oracle,goal_seeking,expert,reactive,shield_only,expert_shield]")
     envs = {u.row_name: u.policy_env for u in E.plan_units(E.prepare(cfg))}
     assert envs["oracle"] == envs["goal_seeking"] == envs["expert"] == {"render_depth": False}
-    assert envs["reactive"] is None and envs["shield_only"] is None  # the image or the shield's point cloud is read
+    # the image or the shield's point cloud is read: behind the shield even the map-reading expert renders
+    assert envs["reactive"] is None and envs["shield_only"] is None and envs["expert_shield"] is None
     # Rendering is observation only: the oracle flies the same trial with and without it.
     (spec,) = E.plan_units(E.prepare(tiny_cfg("configurations=[oracle]")))
     off = E.run_unit(spec)

@@ -26,6 +26,7 @@ import numpy as np
 
 from envs.camera import depth_to_points
 from envs.config import require
+from shield_nav.escape import CameraMap, EscapeConfig
 from shield_nav.expert import ExpertConfig, PlannerController
 from shield_nav.tracking import TrackingConfig, accel_to_command
 
@@ -71,6 +72,7 @@ class OracleConfig:
 
 
 ORACLE_GUIDANCE = ("geodesic", "euclidean")
+REACTIVE_GUIDANCE = (*ORACLE_GUIDANCE, "map")
 """Potentials the oracle can descend (:attr:`OracleConfig.guidance`)."""
 
 
@@ -106,13 +108,20 @@ class ReactiveConfig:
     """When no primitive is free: brake and turn the heading by this much towards the goal side [deg]."""
     guidance: str = "euclidean"
     """Goal direction the score aligns with: ``euclidean`` (straight at the goal point; depth only, the published
-    row) or ``geodesic`` (-grad Phi at the vehicle, read from the privileged geodesic field like the oracle's: the
-    ``reactive_geodesic`` row). Same local avoidance, different global guidance."""
+    row), ``geodesic`` (-grad Phi at the vehicle, read from the privileged geodesic field like the oracle's: the
+    ``reactive_geodesic`` row) or ``map`` (towards the point ``camera_map.lookahead`` metres along a Dijkstra plan
+    over the 2D map of what the flight's own camera has shown, unmapped space free, replanned every
+    ``camera_map.replan_s``: the ``reactive_map`` row, depth only). Same local avoidance, different global
+    guidance."""
+    camera_map: EscapeConfig = field(default_factory=lambda: EscapeConfig(kind="map"))
+    """``guidance: map``: the map and its plan (:class:`shield_nav.escape.CameraMap`); only its ``map_*`` keys,
+    ``replan_s``, ``lookahead`` and ``goal_radius`` are read."""
 
     def validate(self, prefix: str = "") -> None:
-        """A known guidance."""
-        require(self.guidance in ORACLE_GUIDANCE, f"{prefix}guidance",
-                f"unknown guidance {self.guidance!r}; expected one of {ORACLE_GUIDANCE}")  # fmt: skip
+        """A known guidance and a valid map."""
+        require(self.guidance in REACTIVE_GUIDANCE, f"{prefix}guidance",
+                f"unknown guidance {self.guidance!r}; expected one of {REACTIVE_GUIDANCE}")  # fmt: skip
+        self.camera_map.validate(f"{prefix}camera_map.")
 
 
 @dataclass
@@ -309,6 +318,16 @@ class ReactivePlanner(Controller):
         self._psi = _heading(env.vehicles.R_wb).copy()
         self._dir = np.zeros((n, 3))
         self._step = 0
+        self._map: CameraMap | None = None
+        if self.cfg.reactive.guidance == "map":
+            sc = env.scenes[0]
+            if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
+                        and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
+                   for k in np.unique(env.scene_id_buf)):  # fmt: skip
+                raise ValueError("reactive planner, guidance 'map': every env must fly a volume of the same bounds")
+            self._map = CameraMap(self.cfg.reactive.camera_map, n, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
+            self._target = np.full((n, 2), np.nan)
+            self._next_plan = np.zeros(n, dtype=np.int64)
 
     def _plan(self, env: Any, i: int, guide: np.ndarray) -> None:
         rc = self.cfg.reactive
@@ -340,12 +359,31 @@ class ReactivePlanner(Controller):
         self._psi[i] = a[k]
         self._dir[i] = dirs[k]
 
+    def _map_guide(self, env: Any) -> np.ndarray:
+        """``guidance: map``: map this step's images, replan the flights that are due, and aim at their plans."""
+        assert self._map is not None
+        mc, pos, goal = self.cfg.reactive.camera_map, env.local_pos, env.goal_buf
+        live = np.flatnonzero(~env.frozen_buf)
+        self._map.observe(live, pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2]))
+        every = max(int(round(mc.replan_s / env.cfg.vehicle.command_dt)), 1)
+        for i in live[self._step >= self._next_plan[live]]:
+            self._target[i] = self._map.plan(int(i), pos[i], goal[i])
+            self._next_plan[i] = self._step + every
+        guide = _unit(goal - pos)
+        aim = np.isfinite(self._target[:, 0])  # NaN: the plan reaches the goal region, fly at the goal
+        if aim.any():  # horizontally at the plan's point, vertically at the goal's height
+            d = np.concatenate((self._target[aim] - pos[aim, :2], (goal - pos)[aim, 2:3]), axis=1)
+            guide[aim] = _unit(d)
+        return guide
+
     def commands(self, env: Any) -> np.ndarray:  # noqa: D102
         if self._v_des is None:
             self.reset(env)
         if self._step % self.cfg.reactive.replan_every == 0:
             if self.cfg.reactive.guidance == "geodesic":
                 guide = self._oracle.guide(env, env.local_pos)
+            elif self.cfg.reactive.guidance == "map":
+                guide = self._map_guide(env)
             else:
                 guide = _unit(env.goal_buf - env.local_pos)
             for i in np.flatnonzero(~env.frozen_buf):
@@ -365,6 +403,16 @@ class GeodesicReactivePlanner(ReactivePlanner):
 
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         super().__init__(replace(cfg, reactive=replace(cfg.reactive, guidance="geodesic")))
+
+
+class MapReactivePlanner(ReactivePlanner):
+    """The reactive planner guided by a plan over the map its own camera has shown (the ``reactive_map`` row).
+
+    Not privileged: ``reactive.guidance: map`` (:class:`ReactiveConfig`). Same local avoidance as ``reactive``.
+    """
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        super().__init__(replace(cfg, reactive=replace(cfg.reactive, guidance="map")))
 
 
 class EuclideanOracleController(OracleController):
@@ -416,6 +464,7 @@ BASELINES = {
     "oracle_euclidean": EuclideanOracleController,
     "reactive": ReactivePlanner,
     "reactive_geodesic": GeodesicReactivePlanner,
+    "reactive_map": MapReactivePlanner,
     "goal": GoalSeeker,
     "expert": PlannerController,
 }

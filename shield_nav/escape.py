@@ -140,7 +140,7 @@ class StallEscape:
         if cfg.kind == "map" and camera is None:
             raise ValueError("stall escape: escape.kind 'map' needs the camera configuration")
         self.cfg, self.n, self.dt, self.camera = cfg, n, dt, camera
-        self.grid: np.ndarray | None = None  # (n, nx, ny) bool, kind 'map': cells the camera has shown occupied
+        self.map: CameraMap | None = None  # kind 'map': what each flight's camera has shown (made at the first call)
         self.guided = np.zeros(n, dtype=bool)
         self.next_plan = np.zeros(n)
         self.target = np.full((n, 2), np.nan)
@@ -234,20 +234,17 @@ class StallEscape:
         cfg, now = self.cfg, t * self.dt
         if bounds is None or R_wb is None:
             raise ValueError("stall escape: escape.kind 'map' needs the flight volume's bounds and R_wb")
-        lo, hi = (np.asarray(b, dtype=np.float64).reshape(2) for b in bounds)
-        if self.grid is None:
-            shape = np.maximum(np.ceil((hi - lo) / cfg.map_cell).astype(int), 1)
-            self.grid = np.zeros((self.n, int(shape[0]), int(shape[1])), dtype=bool)
-            self.lo = lo
+        if self.map is None:
+            self.map = CameraMap(cfg, self.n, self.camera, *bounds)  # type: ignore[arg-type]
         if t % cfg.map_every == 0:
-            self._observe(np.flatnonzero(live), pos, R_wb, depth_m, floor)
+            self.map.observe(np.flatnonzero(live), pos, R_wb, depth_m, floor)
         stalled = live & ~self.guided & ((now - self.best_t >= cfg.window_s) | circling)
         self._count_circling(stalled, circling & (now - self.best_t < cfg.window_s), t)
         self.guided |= stalled
         self.count[stalled] = 1
         due = np.flatnonzero(self.guided & live & (now >= self.next_plan))
         for i in due:
-            self.target[i] = self._plan(i, pos[i], goal[i])
+            self.target[i] = self.map.plan(i, pos[i], goal[i])
             self.next_plan[i] = now + cfg.replan_s
         steer = self.guided & live & np.isfinite(self.target[:, 0]) & (dist > 2.0 * cfg.goal_radius)
         if not steer.any():
@@ -286,50 +283,6 @@ class StallEscape:
         self.circled += started & by_circling
         self.turned_from = np.where(started, self.turned, self.turned_from)
         self.escape_t = np.where(started, t, self.escape_t)
-
-    def _observe(self, ids: np.ndarray, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
-        """Mark the grid cells of each flight's image points near its height (kind ``map``)."""
-        cfg, grid = self.cfg, self.grid
-        assert grid is not None
-        nx, ny = grid.shape[1:]
-        for i in ids:
-            pts = depth_to_points(depth_m[i], pos[i], R_wb[i], self.camera)  # type: ignore[arg-type]
-            near = np.linalg.norm(pts[:, :2] - pos[i, :2], axis=1) <= cfg.map_range
-            band = (np.abs(pts[:, 2] - pos[i, 2]) <= cfg.map_band) & (pts[:, 2] >= floor + cfg.map_floor)
-            p = pts[near & band]
-            cx = np.floor((p[:, 0] - self.lo[0]) / cfg.map_cell).astype(np.int64)
-            cy = np.floor((p[:, 1] - self.lo[1]) / cfg.map_cell).astype(np.int64)
-            ok = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
-            grid[i, cx[ok], cy[ok]] = True
-
-    def _plan(self, i: int, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """The point (2,) ``lookahead`` along the plan over flight ``i``'s map, or NaN for the true goal input."""
-        cfg, grid = self.cfg, self.grid
-        assert grid is not None
-        occ = grid[i]
-        nx, ny = occ.shape
-        res = cfg.map_cell
-        centres_x = self.lo[0] + (np.arange(nx) + 0.5) * res
-        centres_y = self.lo[1] + (np.arange(ny) + 0.5) * res
-        free = ndimage.distance_transform_edt(~occ, sampling=res) > cfg.map_inflate if occ.any() else ~occ
-        to_goal = np.hypot(centres_x[:, None] - goal[0], centres_y[None, :] - goal[1]) <= cfg.goal_radius
-        if not (free & to_goal).any():
-            return np.full(2, np.nan)  # the mapped obstacles cover the goal region: fly the true goal
-        diag = float(np.hypot(nx * res, ny * res))
-        phi = geodesic_field(free[..., None], to_goal[..., None], res, diag)[0][..., 0]
-        a = int(np.clip(np.floor((pos[0] - self.lo[0]) / res), 0, nx - 1))  # the cells _observe marks
-        b = int(np.clip(np.floor((pos[1] - self.lo[1]) / res), 0, ny - 1))
-        for _ in range(int(round(cfg.lookahead / res))):
-            if to_goal[a, b]:
-                return np.full(2, np.nan)
-            a0, a1, b0, b1 = max(a - 1, 0), min(a + 2, nx), max(b - 1, 0), min(b + 2, ny)
-            steps = np.hypot(*np.meshgrid(np.arange(a0, a1) - a, np.arange(b0, b1) - b, indexing="ij"))
-            slope = (phi[a, b] - phi[a0:a1, b0:b1]) / np.maximum(steps, 1e-9)  # drop per cell length: a straight
-            k = int(np.argmax(slope))  # step beats a diagonal one of the same drop
-            if slope.flat[k] <= 0.0:
-                break  # a local minimum of the plan
-            a, b = a0 + k // slope.shape[1], b0 + k % slope.shape[1]
-        return np.array([centres_x[a], centres_y[b]])
 
     def _start(
         self,
@@ -373,6 +326,77 @@ class StallEscape:
         self.direction[ids] = side[:, None] * left
         self.until[ids] = now + cfg.hold_s + cfg.hold_growth_s * self.count[ids]
         self.count[ids] += 1
+
+
+class CameraMap:
+    """What each flight's camera has shown, as a 2D occupancy grid, and an optimistic plan over it.
+
+    One grid of ``map_cell`` cells per flight over the flight volume's horizontal ``bounds``; :meth:`observe` marks
+    the cells of the depth image's points within ``map_range`` of the vehicle and ``map_band`` of its height (and
+    ``map_floor`` above the floor); :meth:`plan` runs a Dijkstra from the goal region (``goal_radius``) over the
+    grid with mapped cells inflated by ``map_inflate`` and unmapped cells free, and descends it ``lookahead`` metres
+    from the vehicle. Used by the stall escape's ``kind: map`` and by the ``reactive_map`` baseline
+    (:class:`shield_nav.baselines.MapReactivePlanner`). Reads nothing privileged.
+    """
+
+    def __init__(self, cfg: EscapeConfig, n: int, camera: CameraConfig, lo: np.ndarray, hi: np.ndarray) -> None:  # noqa: D107
+        cfg.validate("escape.")
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(2) for b in (lo, hi))
+        if not (hi > lo).all():
+            raise ValueError(f"camera map: the bounds' upper corner {hi.tolist()} must exceed the lower {lo.tolist()}")
+        shape = np.maximum(np.ceil((hi - lo) / cfg.map_cell).astype(int), 1)
+        self.cfg, self.camera, self.lo = cfg, camera, lo
+        self.grid = np.zeros((n, int(shape[0]), int(shape[1])), dtype=bool)
+        """(n, nx, ny) bool: cells the camera has shown occupied."""
+
+    def observe(self, ids: np.ndarray, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
+        """Mark the cells of flights ``ids``' image points near their height.
+
+        ``pos`` (N, 3), ``R_wb`` (N, 3, 3): the vehicles' positions and attitudes in the frame of the bounds;
+        ``depth_m`` (N, 1, H, W) metric depth (0 or non-finite: no return); ``floor``: the volume's floor height.
+        """
+        cfg, grid = self.cfg, self.grid
+        nx, ny = grid.shape[1:]
+        for i in ids:
+            pts = depth_to_points(depth_m[i], pos[i], R_wb[i], self.camera)  # type: ignore[arg-type]
+            near = np.linalg.norm(pts[:, :2] - pos[i, :2], axis=1) <= cfg.map_range
+            band = (np.abs(pts[:, 2] - pos[i, 2]) <= cfg.map_band) & (pts[:, 2] >= floor + cfg.map_floor)
+            p = pts[near & band]
+            cx = np.floor((p[:, 0] - self.lo[0]) / cfg.map_cell).astype(np.int64)
+            cy = np.floor((p[:, 1] - self.lo[1]) / cfg.map_cell).astype(np.int64)
+            ok = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
+            grid[i, cx[ok], cy[ok]] = True
+
+    def plan(self, i: int, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """The point (2,) ``lookahead`` metres along the plan over flight ``i``'s map, or NaN: fly the true goal.
+
+        NaN where the plan reaches the goal region within the lookahead or the mapped obstacles cover that region.
+        """
+        cfg, grid = self.cfg, self.grid
+        occ = grid[i]
+        nx, ny = occ.shape
+        res = cfg.map_cell
+        centres_x = self.lo[0] + (np.arange(nx) + 0.5) * res
+        centres_y = self.lo[1] + (np.arange(ny) + 0.5) * res
+        free = ndimage.distance_transform_edt(~occ, sampling=res) > cfg.map_inflate if occ.any() else ~occ
+        to_goal = np.hypot(centres_x[:, None] - goal[0], centres_y[None, :] - goal[1]) <= cfg.goal_radius
+        if not (free & to_goal).any():
+            return np.full(2, np.nan)  # the mapped obstacles cover the goal region: fly the true goal
+        diag = float(np.hypot(nx * res, ny * res))
+        phi = geodesic_field(free[..., None], to_goal[..., None], res, diag)[0][..., 0]
+        a = int(np.clip(np.floor((pos[0] - self.lo[0]) / res), 0, nx - 1))  # the cells observe marks
+        b = int(np.clip(np.floor((pos[1] - self.lo[1]) / res), 0, ny - 1))
+        for _ in range(int(round(cfg.lookahead / res))):
+            if to_goal[a, b]:
+                return np.full(2, np.nan)
+            a0, a1, b0, b1 = max(a - 1, 0), min(a + 2, nx), max(b - 1, 0), min(b + 2, ny)
+            steps = np.hypot(*np.meshgrid(np.arange(a0, a1) - a, np.arange(b0, b1) - b, indexing="ij"))
+            slope = (phi[a, b] - phi[a0:a1, b0:b1]) / np.maximum(steps, 1e-9)  # drop per cell length: a straight
+            k = int(np.argmax(slope))  # step beats a diagonal one of the same drop
+            if slope.flat[k] <= 0.0:
+                break  # a local minimum of the plan
+            a, b = a0 + k // slope.shape[1], b0 + k % slope.shape[1]
+        return np.array([centres_x[a], centres_y[b]])
 
 
 def _heading(state: np.ndarray) -> np.ndarray:

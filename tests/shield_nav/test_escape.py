@@ -10,7 +10,7 @@ import pytest
 from envs.config import ConfigError
 from envs.navigation.env import STATE_DIM
 from shield_nav import evaluation as E
-from shield_nav.escape import GOAL_COLUMNS, ROT_COLUMNS, EscapeConfig, StallEscape
+from shield_nav.escape import GOAL_COLUMNS, ROT_COLUMNS, CameraMap, EscapeConfig, StallEscape
 
 DT = 0.01
 
@@ -119,13 +119,11 @@ def test_the_flight_volume_turns_the_side_and_ends_the_hold():
 
 
 def _guide(grid_m=(20.0, 10.0)):
-    """A map-kind escape over a 20 x 10 m volume with an empty map of 0.2 m cells (n = 1)."""
+    """A camera map over a 20 x 10 m volume, empty, of 0.2 m cells (n = 1), as the map-kind escape keeps."""
     from envs.camera.config import CameraConfig
 
-    esc = StallEscape(EscapeConfig(kind="map", lookahead=3.0, map_inflate=0.4, goal_radius=1.0), 1, DT, CameraConfig())
-    nx, ny = int(grid_m[0] / 0.2), int(grid_m[1] / 0.2)
-    esc.grid, esc.lo = np.zeros((1, nx, ny), dtype=bool), np.zeros(2)
-    return esc
+    cfg = EscapeConfig(kind="map", lookahead=3.0, map_inflate=0.4, goal_radius=1.0)
+    return CameraMap(cfg, 1, CameraConfig(), np.zeros(2), np.array(grid_m))
 
 
 def test_the_map_plan_goes_round_a_mapped_wall_through_its_gap():
@@ -135,16 +133,41 @@ def test_the_map_plan_goes_round_a_mapped_wall_through_its_gap():
     straight segment to it stays clear of the wall. A goal region the map fills: NaN (fly the true goal)."""
     pos, goal = np.array([2.0, 5.1, 1.5]), np.array([18.0, 5.1, 1.5])  # on the centre line of cell row 25
     esc = _guide()
-    p = esc._plan(0, pos, goal)
+    p = esc.plan(0, pos, goal)
     assert p[1] == pytest.approx(5.1) and 3.0 <= p[0] - pos[0] <= 3.3
     esc.grid[0, 50, :40] = True  # the cell column x in [10, 10.2), y in [0, 8)
-    p = esc._plan(0, pos, goal)
+    p = esc.plan(0, pos, goal)
     assert p[0] > pos[0] + 1.0 and p[1] > pos[1] + 1.0
     angle = math.degrees(math.atan2(p[1] - pos[1], p[0] - pos[0]))
     corner = math.degrees(math.atan2(8.4 - pos[1], 9.6 - pos[0]))  # the inflated wall's end, seen from the vehicle
     assert angle >= corner - 12.0  # the segment aims at or above the wall's end (grid steps: 45 deg sectors)
     esc.grid[0, 85:95, 20:30] = True  # 2 x 2 m of mapped obstacle over the 1 m goal region
-    assert np.isnan(esc._plan(0, pos, goal)).all()
+    assert np.isnan(esc.plan(0, pos, goal)).all()
+
+
+def test_the_camera_map_marks_a_wall_the_image_shows_and_the_plan_goes_round_its_end():
+    """One flight at (2, 5, 1.5) m, level, heading +x, its whole image at 4 m depth: a wall across the view at
+    x = 2 + 0.1 (the camera's mount) + 4 = 6.1 m, cell column 30 of 0.2 m cells, as wide as the 87 deg view at
+    4 m, y = 5 -+ 4 tan(43.5 deg) = 1.2 .. 8.8 m (cell rows 6 .. 43). Nothing else is marked. The goal at
+    (18, 5.1): the plan's point turns off the straight line towards one of the wall's ends, and stays in front of
+    it."""
+    from envs.camera.config import CameraConfig
+
+    cam = CameraConfig()
+    cmap = CameraMap(
+        EscapeConfig(kind="map", lookahead=3.0, goal_radius=1.0), 1, cam, np.zeros(2), np.array([20.0, 10.0])
+    )
+    pos = np.array([[2.0, 5.0, 1.5]])
+    depth = np.full((1, 1, cam.height, cam.width), 4.0, dtype=np.float32)
+    cmap.observe(np.array([0]), pos, np.eye(3)[None], depth, 0.0)
+    marked = np.argwhere(cmap.grid[0])
+    assert set(marked[:, 0].tolist()) == {30}
+    assert marked[:, 1].min() in (5, 6) and marked[:, 1].max() in (43, 44)
+    assert np.all(cmap.grid[0, 30, 7:43])
+    p = cmap.plan(0, pos[0], np.array([18.0, 5.1, 1.5]))
+    assert abs(p[1] - 5.0) > 1.0 and p[0] < 6.0
+    with pytest.raises(ValueError, match="upper corner"):
+        CameraMap(EscapeConfig(kind="map"), 1, cam, np.zeros(2), np.array([20.0, 0.0]))
 
 
 def test_a_circling_flight_escapes_before_the_distance_rule_and_a_weaving_one_does_not():

@@ -103,7 +103,8 @@ def test_euclidean_guidance_is_goal_seeking_away_from_obstacles():
 
 def test_reactive_planner_aligns_with_its_guidance():
     """With only the alignment term in the score, the reactive planner picks the primitive closest to its guide:
-    the goal direction (``euclidean``) or -grad Phi at the vehicle (``geodesic``, Phi differenced here by hand)."""
+    the goal direction (``euclidean``), -grad Phi at the vehicle (``geodesic``, Phi differenced here by hand) or the
+    direction to the point its camera map's plan gives (``map``, not privileged)."""
     env = NavigationEnv(num_envs=12, **SMALL)
     env.reset(seed=3)
     for _ in range(20):
@@ -114,15 +115,21 @@ def test_reactive_planner_aligns_with_its_guidance():
                      for e in np.eye(3)], axis=1)  # fmt: skip
     far = env.field_stack.geodesic(ids, pos) > 3.0  # outside the oracle's goal switch
     assert far.all()
-    guides = {"euclidean": env.goal_buf - pos, "geodesic": -grad}
+    guides = {"euclidean": env.goal_buf - pos, "geodesic": -grad, "map": None}
     chosen = {}
     for kind, guide in guides.items():
         cfg = BaselineConfig()
         cfg.reactive.w_free = cfg.reactive.w_smooth = cfg.reactive.min_free = 0.0
-        planner = make_baseline("reactive" if kind == "euclidean" else "reactive_geodesic", cfg)
+        planner = make_baseline({"euclidean": "reactive"}.get(kind, f"reactive_{kind}"), cfg)
         assert planner.privileged == (kind == "geodesic")
         planner.reset(env)
         planner.commands(env)
+        if kind == "map":  # towards its plan's point at the goal's height, or at the goal where the plan reaches it
+            target = planner._target
+            aim = np.isfinite(target[:, 0])
+            guide = env.goal_buf - pos
+            guide[aim, :2] = target[aim] - pos[aim, :2]
+            assert planner._map.grid.any()  # the first images mapped something
         psi0 = np.arctan2(env.vehicles.R_wb[:, 1, 0], env.vehicles.R_wb[:, 0, 0])
         a = psi0[:, None] + planner._az[None]
         el = np.broadcast_to(planner._el, a.shape)

@@ -36,9 +36,15 @@ class OracleConfig:
     """Privileged geodesic-descent oracle."""
 
     guidance: str = "geodesic"
-    """Potential the oracle descends: ``geodesic`` (the Dijkstra field Phi, around obstacles) or ``euclidean`` (the
-    straight-line distance to the episode's goal point, the potential of the paper's Distance reward). Repulsion
-    and slow-down are the same for both, so the two differ only in their global guidance."""
+    """Potential the oracle descends: ``geodesic`` (the Dijkstra field Phi, around obstacles), ``euclidean`` (the
+    straight-line distance to the episode's goal point, the potential of the paper's Distance reward) or ``map``
+    (towards the point ``camera_map.lookahead`` metres along a Dijkstra plan over the 2D map of what the flight's own
+    camera has shown, unmapped space free: the route a flyer without the map could know; the ``oracle_map`` row).
+    Repulsion and slow-down (which read the privileged ESDF) are the same for all, so they differ only in their
+    global guidance."""
+    camera_map: EscapeConfig = field(default_factory=lambda: EscapeConfig(kind="map"))
+    """``guidance: map``: the map and its plan (:class:`shield_nav.escape.CameraMap`); only its ``map_*`` keys,
+    ``replan_s``, ``lookahead`` and ``goal_radius`` are read."""
     lookahead_s: float = 0.3
     """The descent direction is read at p + v * lookahead_s (anticipates turns) [s]."""
     repulse_dist: float = 0.8
@@ -66,14 +72,16 @@ class OracleConfig:
     distance to it) lead back out. 0: the env's own fields."""
 
     def validate(self, prefix: str = "") -> None:
-        """A known guidance."""
+        """A known guidance and a valid map."""
         require(self.guidance in ORACLE_GUIDANCE, f"{prefix}guidance",
                 f"unknown guidance {self.guidance!r}; expected one of {ORACLE_GUIDANCE}")  # fmt: skip
+        self.camera_map.validate(f"{prefix}camera_map.")
 
 
-ORACLE_GUIDANCE = ("geodesic", "euclidean")
-REACTIVE_GUIDANCE = (*ORACLE_GUIDANCE, "map")
+ORACLE_GUIDANCE = ("geodesic", "euclidean", "map")
 """Potentials the oracle can descend (:attr:`OracleConfig.guidance`)."""
+REACTIVE_GUIDANCE = ORACLE_GUIDANCE
+"""Directions the reactive planner aligns with (:attr:`ReactiveConfig.guidance`)."""
 
 
 @dataclass
@@ -147,6 +155,48 @@ def _heading(r_wb: np.ndarray) -> np.ndarray:
     return np.arctan2(r_wb[:, 1, 0], r_wb[:, 0, 0])
 
 
+class MapGuide:
+    """Guidance from the map of what each flight's own camera has shown (``guidance: map`` of the baselines).
+
+    Every ``map_every`` calls it marks the flights' depth images in a :class:`shield_nav.escape.CameraMap`; every
+    ``replan_s`` it replans each flight's Dijkstra over that map (unmapped space free) and keeps the point
+    ``lookahead`` metres along it. The guide is the unit direction to that point horizontally and to the goal's
+    height vertically, or straight at the goal where the plan reaches the goal region. Reads nothing privileged.
+    """
+
+    def __init__(self, cfg: EscapeConfig, env: Any) -> None:  # noqa: D107
+        sc, n = env.scenes[0], env.num_envs
+        if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
+                    and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
+               for k in np.unique(env.scene_id_buf)):  # fmt: skip
+            raise ValueError("guidance 'map': every env must fly a volume of the same bounds")
+        if not env.cfg.render_depth:
+            raise ValueError("guidance 'map' maps the depth image: the env must render it (render_depth: true; a row "
+                             "whose controller class says reads_depth = False skips the rendering)")  # fmt: skip
+        self.cfg = cfg
+        self.map = CameraMap(cfg, n, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
+        self.floor = float(sc.bounds_lo[2])
+        self.target = np.full((n, 2), np.nan)
+        self.next_plan = np.zeros(n, dtype=np.int64)
+        self.every = max(int(round(cfg.replan_s / env.cfg.vehicle.command_dt)), 1)
+
+    def __call__(self, env: Any, step: int) -> np.ndarray:
+        """Unit guide directions (N, 3) at control step ``step`` (counted from the reset; any subset of steps)."""
+        pos, goal = env.local_pos, env.goal_buf
+        live = np.flatnonzero(~env.frozen_buf)
+        if step % self.cfg.map_every == 0:
+            self.map.observe(live, pos, env.vehicles.R_wb, env.sensor_depth_buf, self.floor)
+        for i in live[step >= self.next_plan[live]]:
+            self.target[i] = self.map.plan(int(i), pos[i], goal[i])
+            self.next_plan[i] = step + self.every
+        guide = _unit(goal - pos)
+        aim = np.isfinite(self.target[:, 0])  # NaN: the plan reaches the goal region, fly at the goal
+        if aim.any():
+            d = np.concatenate((self.target[aim] - pos[aim, :2], (goal - pos)[aim, 2:3]), axis=1)
+            guide[aim] = _unit(d)
+        return guide
+
+
 class Controller:
     """Interface: ``reset(env)`` at the start of a batch of trials, ``commands(env)`` each control step."""
 
@@ -200,6 +250,12 @@ class OracleController(Controller):
 
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg
+        self._map: MapGuide | None = None
+        self._step = 0
+
+    def reset(self, env: Any) -> None:  # noqa: D102
+        self._map = MapGuide(self.cfg.oracle.camera_map, env) if self.cfg.oracle.guidance == "map" else None
+        self._step = 0
 
     def _fields(self, env: Any) -> tuple[Any, Any]:
         """(region FieldStack, GoalAnchorFields or None) to descend: the env's, or the oracle's inflated ones."""
@@ -245,6 +301,12 @@ class OracleController(Controller):
         if oc.guidance == "euclidean":
             # -grad |g - q| = (g - q) / |g - q|: straight at the goal, blind to the obstacles between.
             direction = _unit(env.goal_buf - q)
+            near = np.linalg.norm(env.goal_buf - pos, axis=1) < oc.goal_switch
+        elif oc.guidance == "map":
+            if self._map is None:
+                self.reset(env)
+            direction = self._map(env, self._step)  # from the vehicle: the plan's point is metres ahead
+            self._step += 1
             near = np.linalg.norm(env.goal_buf - pos, axis=1) < oc.goal_switch
         else:
             direction = self._descent(env, ids, q)
@@ -318,16 +380,7 @@ class ReactivePlanner(Controller):
         self._psi = _heading(env.vehicles.R_wb).copy()
         self._dir = np.zeros((n, 3))
         self._step = 0
-        self._map: CameraMap | None = None
-        if self.cfg.reactive.guidance == "map":
-            sc = env.scenes[0]
-            if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
-                        and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
-                   for k in np.unique(env.scene_id_buf)):  # fmt: skip
-                raise ValueError("reactive planner, guidance 'map': every env must fly a volume of the same bounds")
-            self._map = CameraMap(self.cfg.reactive.camera_map, n, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
-            self._target = np.full((n, 2), np.nan)
-            self._next_plan = np.zeros(n, dtype=np.int64)
+        self._map = MapGuide(self.cfg.reactive.camera_map, env) if self.cfg.reactive.guidance == "map" else None
 
     def _plan(self, env: Any, i: int, guide: np.ndarray) -> None:
         rc = self.cfg.reactive
@@ -359,31 +412,14 @@ class ReactivePlanner(Controller):
         self._psi[i] = a[k]
         self._dir[i] = dirs[k]
 
-    def _map_guide(self, env: Any) -> np.ndarray:
-        """``guidance: map``: map this step's images, replan the flights that are due, and aim at their plans."""
-        assert self._map is not None
-        mc, pos, goal = self.cfg.reactive.camera_map, env.local_pos, env.goal_buf
-        live = np.flatnonzero(~env.frozen_buf)
-        self._map.observe(live, pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2]))
-        every = max(int(round(mc.replan_s / env.cfg.vehicle.command_dt)), 1)
-        for i in live[self._step >= self._next_plan[live]]:
-            self._target[i] = self._map.plan(int(i), pos[i], goal[i])
-            self._next_plan[i] = self._step + every
-        guide = _unit(goal - pos)
-        aim = np.isfinite(self._target[:, 0])  # NaN: the plan reaches the goal region, fly at the goal
-        if aim.any():  # horizontally at the plan's point, vertically at the goal's height
-            d = np.concatenate((self._target[aim] - pos[aim, :2], (goal - pos)[aim, 2:3]), axis=1)
-            guide[aim] = _unit(d)
-        return guide
-
     def commands(self, env: Any) -> np.ndarray:  # noqa: D102
         if self._v_des is None:
             self.reset(env)
         if self._step % self.cfg.reactive.replan_every == 0:
             if self.cfg.reactive.guidance == "geodesic":
                 guide = self._oracle.guide(env, env.local_pos)
-            elif self.cfg.reactive.guidance == "map":
-                guide = self._map_guide(env)
+            elif self._map is not None:
+                guide = self._map(env, self._step)
             else:
                 guide = _unit(env.goal_buf - env.local_pos)
             for i in np.flatnonzero(~env.frozen_buf):
@@ -413,6 +449,19 @@ class MapReactivePlanner(ReactivePlanner):
 
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         super().__init__(replace(cfg, reactive=replace(cfg.reactive, guidance="map")))
+
+
+class MapOracleController(OracleController):
+    """The oracle with ``guidance: map`` whatever the config says (the ``oracle_map`` row).
+
+    Its route comes from the map of what its own camera has shown, its repulsion and slow-down from the privileged
+    ESDF.
+    """
+
+    reads_depth = True
+
+    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
+        super().__init__(replace(cfg, oracle=replace(cfg.oracle, guidance="map")))
 
 
 class EuclideanOracleController(OracleController):
@@ -462,6 +511,7 @@ EXPERTS = {"oracle": OracleExpert, "planner": PlannerExpert}
 BASELINES = {
     "oracle": OracleController,
     "oracle_euclidean": EuclideanOracleController,
+    "oracle_map": MapOracleController,
     "reactive": ReactivePlanner,
     "reactive_geodesic": GeodesicReactivePlanner,
     "reactive_map": MapReactivePlanner,

@@ -18,12 +18,14 @@ from shield_nav.baselines import (
     BaselineConfig,
     EuclideanOracleController,
     GoalSeeker,
+    MapOracleController,
     OracleConfig,
     OracleController,
     OracleExpert,
     make_baseline,
 )
 from shield_nav.models import ExpertTeacher
+from shield_nav.tracking import accel_to_command
 from shield_nav.training import load_train_config, make_env, make_runner
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -101,6 +103,35 @@ def test_euclidean_guidance_is_goal_seeking_away_from_obstacles():
     assert np.abs(geo[free] - want[free]).max() > 1e-3  # the geodesic descent is not the straight line
 
 
+def test_map_guidance_flies_the_oracle_towards_its_camera_maps_plan():
+    """``oracle_map``: where neither repulsion nor slow-down acts, the command is the velocity loop's towards the point
+    its camera map's plan gives (horizontally; the goal's height vertically), yaw along it, as computed here from
+    that point; it reads the depth image, and an env that does not render one is refused by name."""
+    env = NavigationEnv(num_envs=32, **SMALL)
+    env.reset(seed=5)
+    cfg = BaselineConfig(oracle=OracleConfig(lookahead_s=0.0))
+    oracle = make_baseline("oracle_map", cfg)
+    assert isinstance(oracle, MapOracleController) and oracle.reads_depth and oracle.privileged
+    oracle.reset(env)
+    got = oracle.commands(env)
+    pos, target = env.local_pos, oracle._map.target
+    aim = np.isfinite(target[:, 0])
+    d = env.field_stack.esdf(env.scene_id_buf, pos)
+    far_from_goal = np.linalg.norm(env.goal_buf - pos, axis=1) > cfg.oracle.goal_switch
+    free = (d > max(cfg.oracle.repulse_dist, cfg.oracle.slow_dist)) & far_from_goal & aim
+    assert free.sum() >= 8
+    u = np.concatenate((target - pos[:, :2], env.goal_buf[:, 2:3] - pos[:, 2:3]), axis=1)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v_des = u * env.target_speed_buf[:, None]
+    want = accel_to_command(cfg.tracking.k_v * (v_des - env.vehicles.vel_w), np.arctan2(u[:, 1], u[:, 0]),
+                            cfg.tracking, env.cfg.vehicle.gravity)  # fmt: skip
+    np.testing.assert_allclose(got[free], want[free], atol=1e-9)
+    blind = NavigationEnv(num_envs=2, render_depth=False, **SMALL)
+    blind.reset(seed=5)
+    with pytest.raises(ValueError, match="render_depth"):
+        make_baseline("oracle_map", cfg).commands(blind)
+
+
 def test_reactive_planner_aligns_with_its_guidance():
     """With only the alignment term in the score, the reactive planner picks the primitive closest to its guide:
     the goal direction (``euclidean``), -grad Phi at the vehicle (``geodesic``, Phi differenced here by hand) or the
@@ -125,11 +156,11 @@ def test_reactive_planner_aligns_with_its_guidance():
         planner.reset(env)
         planner.commands(env)
         if kind == "map":  # towards its plan's point at the goal's height, or at the goal where the plan reaches it
-            target = planner._target
+            target = planner._map.target
             aim = np.isfinite(target[:, 0])
             guide = env.goal_buf - pos
             guide[aim, :2] = target[aim] - pos[aim, :2]
-            assert planner._map.grid.any()  # the first images mapped something
+            assert planner._map.map.grid.any()  # the first images mapped something
         psi0 = np.arctan2(env.vehicles.R_wb[:, 1, 0], env.vehicles.R_wb[:, 0, 0])
         a = psi0[:, None] + planner._az[None]
         el = np.broadcast_to(planner._el, a.shape)

@@ -36,15 +36,9 @@ class OracleConfig:
     """Privileged geodesic-descent oracle."""
 
     guidance: str = "geodesic"
-    """Potential the oracle descends: ``geodesic`` (the Dijkstra field Phi, around obstacles), ``euclidean`` (the
-    straight-line distance to the episode's goal point, the potential of the paper's Distance reward) or ``map``
-    (towards the point ``camera_map.lookahead`` metres along a Dijkstra plan over the 2D map of what the flight's own
-    camera has shown, unmapped space free: the route a flyer without the map could know; the ``oracle_map`` row).
-    Repulsion and slow-down (which read the privileged ESDF) are the same for all, so they differ only in their
-    global guidance."""
-    camera_map: EscapeConfig = field(default_factory=lambda: EscapeConfig(kind="map"))
-    """``guidance: map``: the map and its plan (:class:`shield_nav.escape.CameraMap`); only its ``map_*`` keys,
-    ``replan_s``, ``lookahead`` and ``goal_radius`` are read."""
+    """Potential the oracle descends: ``geodesic`` (the Dijkstra field Phi, around obstacles) or ``euclidean`` (the
+    straight-line distance to the episode's goal point, the potential of the paper's Distance reward). Repulsion
+    and slow-down are the same for both, so the two differ only in their global guidance."""
     lookahead_s: float = 0.3
     """The descent direction is read at p + v * lookahead_s (anticipates turns) [s]."""
     repulse_dist: float = 0.8
@@ -72,15 +66,14 @@ class OracleConfig:
     distance to it) lead back out. 0: the env's own fields."""
 
     def validate(self, prefix: str = "") -> None:
-        """A known guidance and a valid map."""
+        """A known guidance."""
         require(self.guidance in ORACLE_GUIDANCE, f"{prefix}guidance",
                 f"unknown guidance {self.guidance!r}; expected one of {ORACLE_GUIDANCE}")  # fmt: skip
-        self.camera_map.validate(f"{prefix}camera_map.")
 
 
-ORACLE_GUIDANCE = ("geodesic", "euclidean", "map")
+ORACLE_GUIDANCE = ("geodesic", "euclidean")
 """Potentials the oracle can descend (:attr:`OracleConfig.guidance`)."""
-REACTIVE_GUIDANCE = ORACLE_GUIDANCE
+REACTIVE_GUIDANCE = (*ORACLE_GUIDANCE, "map")
 """Directions the reactive planner aligns with (:attr:`ReactiveConfig.guidance`)."""
 
 
@@ -156,10 +149,11 @@ def _heading(r_wb: np.ndarray) -> np.ndarray:
 
 
 class MapGuide:
-    """Guidance from the map of what each flight's own camera has shown (``guidance: map`` of the baselines).
+    """Guidance from the map of what each flight's own camera has shown (the reactive planner's ``guidance: map``).
 
-    Every ``map_every`` calls it marks the flights' depth images in a :class:`shield_nav.escape.CameraMap`; every
-    ``replan_s`` it replans each flight's Dijkstra over that map (unmapped space free) and keeps the point
+    At control steps that are multiples of ``map_every`` it marks the flights' depth images in a
+    :class:`shield_nav.escape.CameraMap`; every ``replan_s`` it replans each flight's Dijkstra over that map
+    (unmapped space free) and keeps the point
     ``lookahead`` metres along it. The guide is the unit direction to that point horizontally and to the goal's
     height vertically, or straight at the goal where the plan reaches the goal region. Reads nothing privileged.
     """
@@ -250,12 +244,6 @@ class OracleController(Controller):
 
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg
-        self._map: MapGuide | None = None
-        self._step = 0
-
-    def reset(self, env: Any) -> None:  # noqa: D102
-        self._map = MapGuide(self.cfg.oracle.camera_map, env) if self.cfg.oracle.guidance == "map" else None
-        self._step = 0
 
     def _fields(self, env: Any) -> tuple[Any, Any]:
         """(region FieldStack, GoalAnchorFields or None) to descend: the env's, or the oracle's inflated ones."""
@@ -301,12 +289,6 @@ class OracleController(Controller):
         if oc.guidance == "euclidean":
             # -grad |g - q| = (g - q) / |g - q|: straight at the goal, blind to the obstacles between.
             direction = _unit(env.goal_buf - q)
-            near = np.linalg.norm(env.goal_buf - pos, axis=1) < oc.goal_switch
-        elif oc.guidance == "map":
-            if self._map is None:
-                self.reset(env)
-            direction = self._map(env, self._step)  # from the vehicle: the plan's point is metres ahead
-            self._step += 1
             near = np.linalg.norm(env.goal_buf - pos, axis=1) < oc.goal_switch
         else:
             direction = self._descent(env, ids, q)
@@ -451,19 +433,6 @@ class MapReactivePlanner(ReactivePlanner):
         super().__init__(replace(cfg, reactive=replace(cfg.reactive, guidance="map")))
 
 
-class MapOracleController(OracleController):
-    """The oracle with ``guidance: map`` whatever the config says (the ``oracle_map`` row).
-
-    Its route comes from the map of what its own camera has shown, its repulsion and slow-down from the privileged
-    ESDF.
-    """
-
-    reads_depth = True
-
-    def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
-        super().__init__(replace(cfg, oracle=replace(cfg.oracle, guidance="map")))
-
-
 class EuclideanOracleController(OracleController):
     """The oracle with ``guidance: euclidean`` whatever the config says (the ``oracle_euclidean`` row)."""
 
@@ -511,7 +480,6 @@ EXPERTS = {"oracle": OracleExpert, "planner": PlannerExpert}
 BASELINES = {
     "oracle": OracleController,
     "oracle_euclidean": EuclideanOracleController,
-    "oracle_map": MapOracleController,
     "reactive": ReactivePlanner,
     "reactive_geodesic": GeodesicReactivePlanner,
     "reactive_map": MapReactivePlanner,

@@ -18,14 +18,12 @@ from shield_nav.baselines import (
     BaselineConfig,
     EuclideanOracleController,
     GoalSeeker,
-    MapOracleController,
     OracleConfig,
     OracleController,
     OracleExpert,
     make_baseline,
 )
 from shield_nav.models import ExpertTeacher
-from shield_nav.tracking import accel_to_command
 from shield_nav.training import load_train_config, make_env, make_runner
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -101,35 +99,6 @@ def test_euclidean_guidance_is_goal_seeking_away_from_obstacles():
     np.testing.assert_allclose(got[free], want[free], atol=1e-9)
     geo = OracleController(cfg).commands(env)
     assert np.abs(geo[free] - want[free]).max() > 1e-3  # the geodesic descent is not the straight line
-
-
-def test_map_guidance_flies_the_oracle_towards_its_camera_maps_plan():
-    """``oracle_map``: where neither repulsion nor slow-down acts, the command is the velocity loop's towards the point
-    its camera map's plan gives (horizontally; the goal's height vertically), yaw along it, as computed here from
-    that point; it reads the depth image, and an env that does not render one is refused by name."""
-    env = NavigationEnv(num_envs=32, **SMALL)
-    env.reset(seed=5)
-    cfg = BaselineConfig(oracle=OracleConfig(lookahead_s=0.0))
-    oracle = make_baseline("oracle_map", cfg)
-    assert isinstance(oracle, MapOracleController) and oracle.reads_depth and oracle.privileged
-    oracle.reset(env)
-    got = oracle.commands(env)
-    pos, target = env.local_pos, oracle._map.target
-    aim = np.isfinite(target[:, 0])
-    d = env.field_stack.esdf(env.scene_id_buf, pos)
-    far_from_goal = np.linalg.norm(env.goal_buf - pos, axis=1) > cfg.oracle.goal_switch
-    free = (d > max(cfg.oracle.repulse_dist, cfg.oracle.slow_dist)) & far_from_goal & aim
-    assert free.sum() >= 8
-    u = np.concatenate((target - pos[:, :2], env.goal_buf[:, 2:3] - pos[:, 2:3]), axis=1)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v_des = u * env.target_speed_buf[:, None]
-    want = accel_to_command(cfg.tracking.k_v * (v_des - env.vehicles.vel_w), np.arctan2(u[:, 1], u[:, 0]),
-                            cfg.tracking, env.cfg.vehicle.gravity)  # fmt: skip
-    np.testing.assert_allclose(got[free], want[free], atol=1e-9)
-    blind = NavigationEnv(num_envs=2, render_depth=False, **SMALL)
-    blind.reset(seed=5)
-    with pytest.raises(ValueError, match="render_depth"):
-        make_baseline("oracle_map", cfg).commands(blind)
 
 
 def test_reactive_planner_aligns_with_its_guidance():

@@ -27,7 +27,7 @@ import numpy as np
 from envs.camera import depth_to_points
 from envs.config import require
 from shield_nav.escape import CameraMap, EscapeConfig
-from shield_nav.expert import ExpertConfig, PlannerController
+from shield_nav.expert import CameraMapPlanner, ExpertConfig, PlannerController
 from shield_nav.tracking import TrackingConfig, accel_to_command
 
 
@@ -485,6 +485,7 @@ BASELINES = {
     "reactive_map": MapReactivePlanner,
     "goal": GoalSeeker,
     "expert": PlannerController,
+    "expert_cammap": CameraMapPlanner,
 }
 """Baseline controllers by the ``controller`` name a row uses."""
 

@@ -43,7 +43,7 @@ is the Markovian alternative: the route is chosen from position and velocity, no
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numba
@@ -51,6 +51,7 @@ import numpy as np
 
 from envs.config import require
 from envs.fields.lookup import trilinear_batch, trilinear_point
+from shield_nav.escape import CameraMap, EscapeConfig
 from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
 from shield_nav.preview import PreviewGains, timed_reference
 from shield_nav.tracking import accel_to_command
@@ -265,6 +266,10 @@ class ExpertConfig:
     more; docs/expert.md, "Below the tops")."""
     max_tilt_deg: float = 50.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50; 48 until 2026-11-29)."""
+    camera_map: EscapeConfig = field(default_factory=lambda: EscapeConfig(kind="map", map_inflate=0.5, goal_radius=2.0))
+    """The ``expert_cammap`` row only (:class:`CameraMapPlanner`): the map of what the flight's own camera has shown
+    whose field its path descends instead of the scene's (its ``map_*`` keys, ``replan_s`` and ``goal_radius``, the
+    field's goal disc; obstacles inflated by 0.5 m as the expert's own field is)."""
     visibility: str = "map"
     """What the speed profile may plan on. ``map``: the whole path, including bends round obstacles the camera does
     not show yet (privileged look-ahead). ``camera``: the path only up to its first sample the depth camera cannot
@@ -341,6 +346,7 @@ class ExpertConfig:
         require(self.visibility in VISIBILITIES, f"{prefix}visibility", f"unknown visibility {self.visibility!r}; "
                 f"expected one of {VISIBILITIES}")  # fmt: skip
         require(self.los_step > 0, f"{prefix}los_step", f"must be > 0, got {self.los_step}")
+        self.camera_map.validate(f"{prefix}camera_map.")
 
 
 @numba.njit(cache=True, fastmath=False)
@@ -707,8 +713,13 @@ class PlannerController:
         self._own = (env, stack, anchors, narrow)
         return stack, anchors, narrow
 
-    def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray, own: bool = True) -> np.ndarray:
-        """Phi at ``pts`` of the inflated fields (``own``) or of the narrow field (the env's traversable space)."""
+    def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray, own: bool = True,
+             rows: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        """Phi at ``pts`` of the inflated fields (``own``) or of the narrow field (the env's traversable space).
+
+        ``ids`` / ``anchor``: each point's scene and goal anchor; ``rows``: each point's env (read by subclasses
+        whose fields are per flight, :class:`CameraMapPlanner`).
+        """
         stack, anchors, narrow = self._fields(env)
         if not own:
             stack, anchors = env.field_stack, (narrow if narrow is not None else env.anchor_fields)
@@ -717,7 +728,8 @@ class PlannerController:
         return stack.geodesic(ids, pts)
 
     # ------------------------------------------------------------------------------------------------ planning
-    def _phi_fields(self, env: Any, ids: np.ndarray, anchor: np.ndarray, own: bool = True) -> tuple:
+    def _phi_fields(self, env: Any, ids: np.ndarray, anchor: np.ndarray, own: bool = True,
+                    rows: np.ndarray | None = None) -> tuple:  # fmt: skip
         """The fields :meth:`_phi` reads, as ``(index (N,), offset, shape, origin, res, phi)`` for a kernel."""
         stack, anchors, narrow = self._fields(env)
         if not own:
@@ -749,14 +761,15 @@ class PlannerController:
             lo, hi = self._box(env)
             pts = np.clip(pts, lo[ids][:, None, :], hi[ids][:, None, :])
         pts = pts.reshape(-1, 3)
-        phi0 = self._phi(env, np.repeat(ids, 7), np.repeat(anchor, 7), pts).reshape(n, 7)
+        every = np.arange(n)
+        phi0 = self._phi(env, np.repeat(ids, 7), np.repeat(anchor, 7), pts, rows=np.repeat(every, 7)).reshape(n, 7)
         slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
         fallback = slope < ec.flat_slope
         self.fallback = fallback
-        p = self._phi_fields(env, ids, anchor)
+        p = self._phi_fields(env, ids, anchor, rows=every)
         q = p
         if fallback.any():  # the narrow field is built only for the envs that descend it
-            qf = self._phi_fields(env, ids[fallback], anchor[fallback], own=False)
+            qf = self._phi_fields(env, ids[fallback], anchor[fallback], own=False, rows=every[fallback])
             index = np.zeros(n, dtype=np.int64)
             index[fallback] = qf[0]
             q = (index, *qf[1:])
@@ -870,10 +883,11 @@ class PlannerController:
         ids, anchor = env.scene_id_buf, env.anchor_buf
         length = np.linalg.norm(np.diff(path, axis=1), axis=2).sum(axis=1)
         end = path[:, -1]
-        left = self._phi(env, ids, anchor, end)
+        every = np.arange(len(end))
+        left = self._phi(env, ids, anchor, end, rows=every)
         fb = self.fallback
         if fb.any():
-            left[fb] = self._phi(env, ids[fb], anchor[fb], end[fb], own=False)
+            left[fb] = self._phi(env, ids[fb], anchor[fb], end[fb], own=False, rows=every[fb])
         return length + left
 
     def _band(self, env: Any, path: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1045,3 +1059,97 @@ class PlannerController:
         ref_p, ref_v = model["ref_p"][:, :t], model["ref_v"][:, :t]
         ref = np.stack((ref_p, ref_v), axis=2).transpose(0, 3, 1, 2).reshape(len(ref_p), 3, -1)  # (N, 3, 2 steps)
         return self.gains.first_input(ref, model["x0"], model["drag"], model["a_thr"]), ref_v[:, 0]
+
+
+class CameraMapPlanner(PlannerController):
+    """The planning expert routed by what its own camera has shown (the ``expert_cammap`` row; a diagnostic).
+
+    Path tracer, elastic band, speed profile and sampling tracker are the expert's, and so is their ESDF (the
+    scene's: privileged local geometry); only Phi, the field the path descends and the route cost reads, is each
+    flight's own: a Dijkstra over the 2D map of its depth images (:class:`shield_nav.escape.CameraMap`, unmapped
+    space free, mapped cells inflated by ``camera_map.map_inflate``, to a disc of ``camera_map.goal_radius`` round the
+    goal), replanned every ``camera_map.replan_s`` and extruded over the volume's height. Against the ``expert`` row
+    on the same trials it measures what the route a flyer without the map could know costs (docs/expert.md, "What an
+    onboard map gives").
+    """
+
+    reads_depth = True
+
+    def reset(self, env: Any) -> None:
+        """Start a batch: empty maps and fields, every flight due for a plan."""
+        super().reset(env)
+        mc, sc, n = self.ec.camera_map, env.scenes[0], env.num_envs
+        if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
+                    and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
+               for k in np.unique(env.scene_id_buf)):  # fmt: skip
+            raise ValueError("expert_cammap: every env must fly a volume of the same bounds")
+        if not env.cfg.render_depth:
+            raise ValueError("expert_cammap maps the depth image: the env must render it (render_depth: true)")
+        self._map = CameraMap(mc, n, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
+        res = mc.map_cell
+        nx, ny = self._map.grid.shape[1:]
+        self._nz = int(math.ceil((sc.bounds_hi[2] - sc.bounds_lo[2]) / res)) + 1
+        size = nx * ny * self._nz
+        self._shape = np.tile(np.array([[nx, ny, self._nz]], dtype=np.int64), (n, 1))
+        origin = [sc.bounds_lo[0] + 0.5 * res, sc.bounds_lo[1] + 0.5 * res, sc.bounds_lo[2]]  # the cells' centres
+        self._origin = np.tile(np.array([origin], dtype=np.float64), (n, 1))
+        self._res = np.full(n, res, dtype=np.float64)
+        self._offset = np.arange(n, dtype=np.int64) * size
+        self._phi_flat = np.zeros(n * size, dtype=np.float32)
+        self._next = np.zeros(n, dtype=np.int64)
+        self._step = 0
+        self._env = env
+
+    def phi_map(self, i: int, goal: np.ndarray) -> np.ndarray:
+        """Flight ``i``'s field (nx, ny) [m] over its current map: the path length to the goal disc round ``goal``."""
+        from scipy import ndimage
+
+        from envs.fields.geodesic import geodesic_field
+
+        mc, occ = self.ec.camera_map, self._map.grid[i]
+        res = mc.map_cell
+        nx, ny = occ.shape
+        cx = self._map.lo[0] + (np.arange(nx) + 0.5) * res
+        cy = self._map.lo[1] + (np.arange(ny) + 0.5) * res
+        free = ndimage.distance_transform_edt(~occ, sampling=res) > mc.map_inflate if occ.any() else ~occ
+        to_goal = np.hypot(cx[:, None] - goal[0], cy[None, :] - goal[1]) <= mc.goal_radius
+        if not (free & to_goal).any():  # the map covers the whole goal disc: keep the disc a source
+            free |= to_goal
+        return geodesic_field(free[..., None], to_goal[..., None], res, float(np.hypot(nx * res, ny * res)))[0][..., 0]
+
+    def commands(self, env: Any) -> np.ndarray:
+        """Map this step's images, replan the flights that are due, then the expert's command on those fields."""
+        if getattr(self, "_env", None) is not env:
+            self.reset(env)
+        mc = self.ec.camera_map
+        live = np.flatnonzero(~env.frozen_buf)
+        if self._step % mc.map_every == 0:
+            self._map.observe(
+                live, env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2])
+            )
+        size = int(self._shape[0].prod())
+        every = max(int(round(mc.replan_s / env.cfg.vehicle.command_dt)), 1)
+        for i in live[self._step >= self._next[live]]:
+            phi = self.phi_map(int(i), env.goal_buf[i]).astype(np.float32)
+            o = int(self._offset[i])
+            self._phi_flat[o : o + size] = np.repeat(phi[:, :, None], self._nz, axis=2).ravel()
+            self._next[i] = self._step + every
+        self._step += 1
+        return super().commands(env)
+
+    def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray, own: bool = True,
+             rows: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        if rows is None:
+            raise ValueError("expert_cammap: a field lookup without its flights")
+        out = np.empty(len(rows))
+        e1, e3 = np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
+        trilinear_batch(np.asarray(rows, dtype=np.int64), np.ascontiguousarray(pts, dtype=np.float64), self._offset,
+                        self._shape, self._origin, self._res, e1, e3, self._phi_flat, False, False, True, e1, e3,
+                        out)  # fmt: skip
+        return out
+
+    def _phi_fields(self, env: Any, ids: np.ndarray, anchor: np.ndarray, own: bool = True,
+                    rows: np.ndarray | None = None) -> tuple:  # fmt: skip
+        if rows is None:
+            raise ValueError("expert_cammap: a field lookup without its flights")
+        return np.asarray(rows, dtype=np.int64), self._offset, self._shape, self._origin, self._res, self._phi_flat

@@ -36,7 +36,9 @@ class RowConfig:
     local ESDF map, so the row is privileged like the oracle), or a baseline: ``oracle`` (privileged),
     ``oracle_euclidean`` (the same oracle descending the Euclidean distance to the goal instead of Phi; privileged),
     ``reactive``, ``reactive_geodesic`` (aligned with -grad Phi instead of the goal direction; privileged),
-    ``reactive_map`` (aligned with a plan over the map of what its own camera has shown; depth only), ``goal``."""
+    ``reactive_map`` (aligned with a plan over the map of what its own camera has shown; depth only), ``goal``,
+    ``expert`` (the planning expert; privileged), ``expert_cammap`` (the expert routed by its own camera's map; its
+    local geometry privileged)."""
     policy: str = ""
     """Checkpoint name (a key of ``checkpoints``) for ``controller: policy`` or ``teacher``."""
     shield: bool = False

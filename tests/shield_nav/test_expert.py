@@ -101,6 +101,53 @@ def test_euclidean_guidance_is_goal_seeking_away_from_obstacles():
     assert np.abs(geo[free] - want[free]).max() > 1e-3  # the geodesic descent is not the straight line
 
 
+def test_the_camera_map_experts_field_is_the_path_length_round_what_its_camera_mapped():
+    """``expert_cammap``'s Phi on a 20 x 10 m map of 0.2 m cells, goal (18, 5.1), goal disc 2 m. Empty map: at the
+    cell centre (2.1, 5.1) Phi is the distance to the disc's nearest cell centre, 16.1 - 2.1 = 14.0 m. A mapped wall at
+    x = 10 for y < 8 (inflated 0.5 m): the way passes above y = 8.5 at x = 10.1, so Phi >= hypot(8, 3.4) +
+    hypot(7.9, 3.4) - 2 = 15.3 m, and the way through (10.1, 9.2) bounds it by hypot(8, 4.1) + hypot(7.9, 4.1) - 2 =
+    15.9 m (+ the grid stencil's error)."""
+    from envs.camera.config import CameraConfig
+    from shield_nav.escape import CameraMap
+
+    planner = make_baseline("expert_cammap", BaselineConfig())
+    assert planner.reads_depth and planner.privileged
+    planner._map = CameraMap(planner.ec.camera_map, 1, CameraConfig(), np.zeros(2), np.array([20.0, 10.0]))
+    goal = np.array([18.0, 5.1, 1.5])
+    assert planner.phi_map(0, goal)[10, 25] == pytest.approx(14.0, abs=0.1)
+    planner._map.grid[0, 50, :40] = True
+    phi = planner.phi_map(0, goal)[10, 25]
+    assert (
+        math.hypot(8, 3.4) + math.hypot(7.9, 3.4) - 2 - 0.05
+        <= phi
+        <= math.hypot(8, 4.1) + math.hypot(7.9, 4.1) - 2 + 0.3
+    )
+
+
+def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_image():
+    """In a real env, after one command: the field the path descends, read at cell centres through the kernel's
+    lookup (rows = flights), is each flight's own map field, the same at every height; a non-rendering env is
+    refused by name."""
+    env = NavigationEnv(num_envs=4, **SMALL)
+    env.reset(seed=3)
+    planner = make_baseline("expert_cammap", BaselineConfig())
+    cmd = planner.commands(env)
+    assert cmd.shape == (4, 4) and np.isfinite(cmd).all()
+    assert planner._map.grid.any()
+    lo, res = planner._map.lo, planner.ec.camera_map.map_cell
+    rows = np.arange(4)
+    for a, b in ((10, 30), (60, 80), (150, 20)):
+        for z in (0.5, 1.5, 2.5):
+            pts = np.tile([lo[0] + (a + 0.5) * res, lo[1] + (b + 0.5) * res, z], (4, 1))
+            got = planner._phi(env, env.scene_id_buf, env.anchor_buf, pts, rows=rows)
+            want = [planner.phi_map(i, env.goal_buf[i])[a, b] for i in range(4)]
+            np.testing.assert_allclose(got, want, rtol=1e-6)
+    blind = NavigationEnv(num_envs=2, render_depth=False, **SMALL)
+    blind.reset(seed=3)
+    with pytest.raises(ValueError, match="render_depth"):
+        make_baseline("expert_cammap", BaselineConfig()).commands(blind)
+
+
 def test_reactive_planner_aligns_with_its_guidance():
     """With only the alignment term in the score, the reactive planner picks the primitive closest to its guide:
     the goal direction (``euclidean``), -grad Phi at the vehicle (``geodesic``, Phi differenced here by hand) or the

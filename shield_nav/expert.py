@@ -1068,7 +1068,9 @@ class CameraMapPlanner(PlannerController):
     scene's: privileged local geometry); only Phi, the field the path descends and the route cost reads, is each
     flight's own: a Dijkstra over the 2D map of its depth images (:class:`shield_nav.escape.CameraMap`, unmapped
     space free, mapped cells inflated by ``camera_map.map_inflate``, to a disc of ``camera_map.goal_radius`` round the
-    goal), replanned every ``camera_map.replan_s`` and extruded over the volume's height. Against the ``expert`` row
+    goal), replanned every ``camera_map.replan_s`` and extended over the volume's height by the height difference to
+    the goal (the scene's field too grows away from the goal's height; without that term the path drifted up over the
+    obstacles, lab log 2026-12-05, session 92). Against the ``expert`` row
     on the same trials it measures what the route a flyer without the map could know costs (docs/expert.md, "What an
     onboard map gives").
     """
@@ -1129,10 +1131,12 @@ class CameraMapPlanner(PlannerController):
             )
         size = int(self._shape[0].prod())
         every = max(int(round(mc.replan_s / env.cfg.vehicle.command_dt)), 1)
+        z = self._origin[0, 2] + np.arange(self._nz) * mc.map_cell  # the layers' heights
         for i in live[self._step >= self._next[live]]:
-            phi = self.phi_map(int(i), env.goal_buf[i]).astype(np.float32)
+            phi = self.phi_map(int(i), env.goal_buf[i])
+            up = np.abs(z - env.goal_buf[i, 2])  # the climb or descent to the goal's height (the scene's field has it)
             o = int(self._offset[i])
-            self._phi_flat[o : o + size] = np.repeat(phi[:, :, None], self._nz, axis=2).ravel()
+            self._phi_flat[o : o + size] = (phi[:, :, None] + up[None, None, :]).astype(np.float32).ravel()
             self._next[i] = self._step + every
         self._step += 1
         return super().commands(env)

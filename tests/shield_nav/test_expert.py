@@ -126,8 +126,8 @@ def test_the_camera_map_experts_field_is_the_path_length_round_what_its_camera_m
 
 def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_image():
     """In a real env, after one command: the field the path descends, read at cell centres through the kernel's
-    lookup (rows = flights), is each flight's own map field, the same at every height; a non-rendering env is
-    refused by name."""
+    lookup (rows = flights), is each flight's own map field plus the height difference to its goal; a non-rendering
+    env is refused by name."""
     env = NavigationEnv(num_envs=4, **SMALL)
     env.reset(seed=3)
     planner = make_baseline("expert_cammap", BaselineConfig())
@@ -137,10 +137,10 @@ def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_ima
     lo, res = planner._map.lo, planner.ec.camera_map.map_cell
     rows = np.arange(4)
     for a, b in ((10, 30), (60, 80), (150, 20)):
-        for z in (0.5, 1.5, 2.5):
+        for z in planner._origin[0, 2] + res * np.array([2, 7, 12]):  # layer heights: no interpolation across
             pts = np.tile([lo[0] + (a + 0.5) * res, lo[1] + (b + 0.5) * res, z], (4, 1))
             got = planner._phi(env, env.scene_id_buf, env.anchor_buf, pts, rows=rows)
-            want = [planner.phi_map(i, env.goal_buf[i])[a, b] for i in range(4)]
+            want = [planner.phi_map(i, env.goal_buf[i])[a, b] + abs(z - env.goal_buf[i, 2]) for i in range(4)]
             np.testing.assert_allclose(got, want, rtol=1e-6)
     blind = NavigationEnv(num_envs=2, render_depth=False, **SMALL)
     blind.reset(seed=3)

@@ -1069,8 +1069,7 @@ class CameraMapPlanner(PlannerController):
     flight's own: a Dijkstra over the 2D map of its depth images (:class:`shield_nav.escape.CameraMap`, unmapped
     space free, mapped cells inflated by ``camera_map.map_inflate``, to a disc of ``camera_map.goal_radius`` round the
     goal), replanned every ``camera_map.replan_s`` and extended over the volume's height by the height difference to
-    the goal (the scene's field too grows away from the goal's height; without that term the path drifted up over the
-    obstacles, lab log 2026-12-05, session 92). Against the ``expert`` row
+    the goal (as the scene's field grows away from the goal's height). Against the ``expert`` row
     on the same trials it measures what the route a flyer without the map could know costs (docs/expert.md, "What an
     onboard map gives").
     """

@@ -153,23 +153,16 @@ class MapGuide:
 
     At control steps that are multiples of ``map_every`` it marks the flights' depth images in a
     :class:`shield_nav.escape.CameraMap`; every ``replan_s`` it replans each flight's Dijkstra over that map
-    (unmapped space free) and keeps the point
-    ``lookahead`` metres along it. The guide is the unit direction to that point horizontally and to the goal's
-    height vertically, or straight at the goal where the plan reaches the goal region. Reads nothing privileged.
+    (unmapped space free) and keeps the point ``lookahead`` metres along it. The guide is the unit direction to that
+    point horizontally and to the goal's height vertically, or straight at the goal where the plan reaches the goal
+    region. Reads nothing privileged.
     """
 
     def __init__(self, cfg: EscapeConfig, env: Any) -> None:  # noqa: D107
-        sc, n = env.scenes[0], env.num_envs
-        if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
-                    and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
-               for k in np.unique(env.scene_id_buf)):  # fmt: skip
-            raise ValueError("guidance 'map': every env must fly a volume of the same bounds")
-        if not env.cfg.render_depth:
-            raise ValueError("guidance 'map' maps the depth image: the env must render it (render_depth: true; a row "
-                             "whose controller class says reads_depth = False skips the rendering)")  # fmt: skip
+        n = env.num_envs
         self.cfg = cfg
-        self.map = CameraMap(cfg, n, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
-        self.floor = float(sc.bounds_lo[2])
+        self.map = CameraMap.for_env(cfg, env)
+        self.floor = float(env.scenes[0].bounds_lo[2])
         self.target = np.full((n, 2), np.nan)
         self.next_plan = np.zeros(n, dtype=np.int64)
         self.every = max(int(round(cfg.replan_s / env.cfg.vehicle.command_dt)), 1)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -367,23 +368,57 @@ class CameraMap:
             ok = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
             grid[i, cx[ok], cy[ok]] = True
 
+    @classmethod
+    def for_env(cls, cfg: EscapeConfig, env: Any) -> CameraMap:
+        """A map for every flight of a navigation env: one flight volume for all, and the env must render depth."""
+        sc = env.scenes[0]
+        if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
+                    and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
+               for k in np.unique(env.scene_id_buf)):  # fmt: skip
+            raise ValueError("camera map: every env must fly a volume of the same bounds")
+        if not env.cfg.render_depth:
+            raise ValueError("camera map: it maps the depth image, so the env must render it (render_depth: true; a "
+                             "row whose controller class says reads_depth = False skips the rendering)")  # fmt: skip
+        return cls(cfg, env.num_envs, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cells' centre coordinates along x (nx,) and y (ny,)."""
+        nx, ny = self.grid.shape[1:]
+        res = self.cfg.map_cell
+        return self.lo[0] + (np.arange(nx) + 0.5) * res, self.lo[1] + (np.arange(ny) + 0.5) * res
+
+    def field(self, i: int, goal: np.ndarray, covered_goal: str = "nan") -> tuple[np.ndarray, np.ndarray] | None:
+        """Flight ``i``'s field (nx, ny) over its map and the goal disc's mask (nx, ny).
+
+        The field is the path length [m] to the disc of ``goal_radius`` round ``goal``, mapped cells inflated by
+        ``map_inflate`` and unmapped ones free. Where the mapped cells cover the whole disc: None (``covered_goal``
+        ``"nan"``), or the disc kept a source (``"keep"``).
+        """
+        cfg, occ = self.cfg, self.grid[i]
+        res = cfg.map_cell
+        cx, cy = self.centres()
+        free = ndimage.distance_transform_edt(~occ, sampling=res) > cfg.map_inflate if occ.any() else ~occ
+        to_goal = np.hypot(cx[:, None] - goal[0], cy[None, :] - goal[1]) <= cfg.goal_radius
+        if not (free & to_goal).any():
+            if covered_goal == "nan":
+                return None
+            free |= to_goal
+        diag = float(np.hypot(*(np.array(occ.shape) * res)))
+        return geodesic_field(free[..., None], to_goal[..., None], res, diag)[0][..., 0], to_goal
+
     def plan(self, i: int, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """The point (2,) ``lookahead`` metres along the plan over flight ``i``'s map, or NaN: fly the true goal.
 
         NaN where the plan reaches the goal region within the lookahead or the mapped obstacles cover that region.
         """
-        cfg, grid = self.cfg, self.grid
-        occ = grid[i]
-        nx, ny = occ.shape
-        res = cfg.map_cell
-        centres_x = self.lo[0] + (np.arange(nx) + 0.5) * res
-        centres_y = self.lo[1] + (np.arange(ny) + 0.5) * res
-        free = ndimage.distance_transform_edt(~occ, sampling=res) > cfg.map_inflate if occ.any() else ~occ
-        to_goal = np.hypot(centres_x[:, None] - goal[0], centres_y[None, :] - goal[1]) <= cfg.goal_radius
-        if not (free & to_goal).any():
+        cfg = self.cfg
+        out = self.field(i, goal)
+        if out is None:
             return np.full(2, np.nan)  # the mapped obstacles cover the goal region: fly the true goal
-        diag = float(np.hypot(nx * res, ny * res))
-        phi = geodesic_field(free[..., None], to_goal[..., None], res, diag)[0][..., 0]
+        phi, to_goal = out
+        nx, ny = phi.shape
+        res = cfg.map_cell
+        centres_x, centres_y = self.centres()
         a = int(np.clip(np.floor((pos[0] - self.lo[0]) / res), 0, nx - 1))  # the cells observe marks
         b = int(np.clip(np.floor((pos[1] - self.lo[1]) / res), 0, ny - 1))
         for _ in range(int(round(cfg.lookahead / res))):

@@ -1080,13 +1080,7 @@ class CameraMapPlanner(PlannerController):
         """Start a batch: empty maps and fields, every flight due for a plan."""
         super().reset(env)
         mc, sc, n = self.ec.camera_map, env.scenes[0], env.num_envs
-        if any(not (np.array_equal(env.scenes[k].bounds_lo, sc.bounds_lo)
-                    and np.array_equal(env.scenes[k].bounds_hi, sc.bounds_hi))
-               for k in np.unique(env.scene_id_buf)):  # fmt: skip
-            raise ValueError("expert_cammap: every env must fly a volume of the same bounds")
-        if not env.cfg.render_depth:
-            raise ValueError("expert_cammap maps the depth image: the env must render it (render_depth: true)")
-        self._map = CameraMap(mc, n, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
+        self._map = CameraMap.for_env(mc, env)
         res = mc.map_cell
         nx, ny = self._map.grid.shape[1:]
         self._nz = int(math.ceil((sc.bounds_hi[2] - sc.bounds_lo[2]) / res)) + 1
@@ -1103,20 +1097,7 @@ class CameraMapPlanner(PlannerController):
 
     def phi_map(self, i: int, goal: np.ndarray) -> np.ndarray:
         """Flight ``i``'s field (nx, ny) [m] over its current map: the path length to the goal disc round ``goal``."""
-        from scipy import ndimage
-
-        from envs.fields.geodesic import geodesic_field
-
-        mc, occ = self.ec.camera_map, self._map.grid[i]
-        res = mc.map_cell
-        nx, ny = occ.shape
-        cx = self._map.lo[0] + (np.arange(nx) + 0.5) * res
-        cy = self._map.lo[1] + (np.arange(ny) + 0.5) * res
-        free = ndimage.distance_transform_edt(~occ, sampling=res) > mc.map_inflate if occ.any() else ~occ
-        to_goal = np.hypot(cx[:, None] - goal[0], cy[None, :] - goal[1]) <= mc.goal_radius
-        if not (free & to_goal).any():  # the map covers the whole goal disc: keep the disc a source
-            free |= to_goal
-        return geodesic_field(free[..., None], to_goal[..., None], res, float(np.hypot(nx * res, ny * res)))[0][..., 0]
+        return self._map.field(i, goal, covered_goal="keep")[0]  # type: ignore[index]
 
     def commands(self, env: Any) -> np.ndarray:
         """Map this step's images, replan the flights that are due, then the expert's command on those fields."""

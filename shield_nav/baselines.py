@@ -159,23 +159,14 @@ class MapGuide:
     """
 
     def __init__(self, cfg: EscapeConfig, env: Any) -> None:  # noqa: D107
-        n = env.num_envs
-        self.cfg = cfg
         self.map = CameraMap.for_env(cfg, env)
-        self.floor = float(env.scenes[0].bounds_lo[2])
-        self.target = np.full((n, 2), np.nan)
-        self.next_plan = np.zeros(n, dtype=np.int64)
-        self.every = max(int(round(cfg.replan_s / env.cfg.vehicle.command_dt)), 1)
+        self.target = np.full((env.num_envs, 2), np.nan)
 
     def __call__(self, env: Any, step: int) -> np.ndarray:
         """Unit guide directions (N, 3) at control step ``step`` (counted from the reset; any subset of steps)."""
         pos, goal = env.local_pos, env.goal_buf
-        live = np.flatnonzero(~env.frozen_buf)
-        if step % self.cfg.map_every == 0:
-            self.map.observe(live, pos, env.vehicles.R_wb, env.sensor_depth_buf, self.floor)
-        for i in live[step >= self.next_plan[live]]:
+        for i in self.map.due(env, step):
             self.target[i] = self.map.plan(int(i), pos[i], goal[i])
-            self.next_plan[i] = step + self.every
         guide = _unit(goal - pos)
         aim = np.isfinite(self.target[:, 0])  # NaN: the plan reaches the goal region, fly at the goal
         if aim.any():

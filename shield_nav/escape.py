@@ -349,6 +349,8 @@ class CameraMap:
         self.cfg, self.camera, self.lo = cfg, camera, lo
         self.grid = np.zeros((n, int(shape[0]), int(shape[1])), dtype=bool)
         """(n, nx, ny) bool: cells the camera has shown occupied."""
+        self.next_plan = np.zeros(n, dtype=np.int64)
+        """(n,) the control step from which each flight is due for a plan again (:meth:`due`)."""
 
     def observe(self, ids: np.ndarray, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
         """Mark the cells of flights ``ids``' image points near their height.
@@ -380,6 +382,23 @@ class CameraMap:
             raise ValueError("camera map: it maps the depth image, so the env must render it (render_depth: true; a "
                              "row whose controller class says reads_depth = False skips the rendering)")  # fmt: skip
         return cls(cfg, env.num_envs, env.cfg.camera, sc.bounds_lo[:2], sc.bounds_hi[:2])
+
+    def due(self, env: Any, step: int) -> np.ndarray:
+        """The live flights of a navigation env due for a plan at control step ``step``.
+
+        At steps that are multiples of ``map_every`` it first maps the live flights' images; each flight returned is
+        booked for its next plan ``replan_s`` later. Any subset of steps may call it (the schedule reads ``step``,
+        not the number of calls).
+        """
+        cfg = self.cfg
+        live = np.flatnonzero(~env.frozen_buf)
+        if step % cfg.map_every == 0:
+            self.observe(
+                live, env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2])
+            )
+        due = live[step >= self.next_plan[live]]
+        self.next_plan[due] = step + max(int(round(cfg.replan_s / env.cfg.vehicle.command_dt)), 1)
+        return due
 
     def centres(self) -> tuple[np.ndarray, np.ndarray]:
         """The cells' centre coordinates along x (nx,) and y (ny,)."""

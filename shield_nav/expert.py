@@ -1091,7 +1091,6 @@ class CameraMapPlanner(PlannerController):
         self._res = np.full(n, res, dtype=np.float64)
         self._offset = np.arange(n, dtype=np.int64) * size
         self._phi_flat = np.zeros(n * size, dtype=np.float32)
-        self._next = np.zeros(n, dtype=np.int64)
         self._step = 0
         self._env = env
 
@@ -1103,21 +1102,13 @@ class CameraMapPlanner(PlannerController):
         """Map this step's images, replan the flights that are due, then the expert's command on those fields."""
         if getattr(self, "_env", None) is not env:
             self.reset(env)
-        mc = self.ec.camera_map
-        live = np.flatnonzero(~env.frozen_buf)
-        if self._step % mc.map_every == 0:
-            self._map.observe(
-                live, env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2])
-            )
         size = int(self._shape[0].prod())
-        every = max(int(round(mc.replan_s / env.cfg.vehicle.command_dt)), 1)
-        z = self._origin[0, 2] + np.arange(self._nz) * mc.map_cell  # the layers' heights
-        for i in live[self._step >= self._next[live]]:
+        z = self._origin[0, 2] + np.arange(self._nz) * self.ec.camera_map.map_cell  # the layers' heights
+        for i in self._map.due(env, self._step):
             phi = self.phi_map(int(i), env.goal_buf[i])
             up = np.abs(z - env.goal_buf[i, 2])  # the climb or descent to the goal's height (the scene's field has it)
             o = int(self._offset[i])
             self._phi_flat[o : o + size] = (phi[:, :, None] + up[None, None, :]).astype(np.float32).ravel()
-            self._next[i] = self._step + every
         self._step += 1
         return super().commands(env)
 

@@ -413,17 +413,56 @@ class CameraMap:
         ``map_inflate`` and unmapped ones free. Where the mapped cells cover the whole disc: None (``covered_goal``
         ``"nan"``), or the disc kept a source (``"keep"``).
         """
-        cfg, occ = self.cfg, self.grid[i]
-        res = cfg.map_cell
-        cx, cy = self.centres()
-        free = ndimage.distance_transform_edt(~occ, sampling=res) > cfg.map_inflate if occ.any() else ~occ
-        to_goal = np.hypot(cx[:, None] - goal[0], cy[None, :] - goal[1]) <= cfg.goal_radius
+        cfg = self.cfg
+        free = self.clearance(i) > cfg.map_inflate
+        to_goal = self._goal_disc(goal)
         if not (free & to_goal).any():
             if covered_goal == "nan":
                 return None
             free |= to_goal
-        diag = float(np.hypot(*(np.array(occ.shape) * res)))
-        return geodesic_field(free[..., None], to_goal[..., None], res, diag)[0][..., 0], to_goal
+        return geodesic_field(free[..., None], to_goal[..., None], cfg.map_cell, self._diag())[0][..., 0], to_goal
+
+    def narrow_field(self, i: int, goal: np.ndarray, radius: float, clearance: float, weight: float) -> np.ndarray:
+        """Flight ``i``'s narrow field (nx, ny), the expert's narrow field on the camera's map.
+
+        The weighted path length to the goal disc through the cells more than ``radius`` from every mapped cell, each
+        metre weighed ``1 + weight * max(0, clearance - d) / clearance`` (``d``
+        the distance to the nearest mapped cell), so its paths keep to the middle of corridors that ``map_inflate``
+        closes. The goal disc stays a source where mapped cells cover it.
+        """
+        if not (radius >= 0 and clearance > 0 and weight >= 0):
+            raise ValueError(f"camera map: narrow field needs radius >= 0, clearance > 0, weight >= 0; got {radius}, "
+                             f"{clearance}, {weight}")  # fmt: skip
+        d = self.clearance(i)
+        free = d > radius
+        to_goal = self._goal_disc(goal)
+        if not (free & to_goal).any():
+            free |= to_goal
+        cost = 1.0 + weight * np.clip(clearance - d, 0.0, None) / clearance  # d = inf (nothing mapped): 1
+        out = geodesic_field(free[..., None], to_goal[..., None], self.cfg.map_cell, self._diag(), cost=cost[..., None])
+        return out[0][..., 0]
+
+    def clearance(self, i: int) -> np.ndarray:
+        """Distance (nx, ny) [m] from each cell centre of flight ``i``'s map to the nearest mapped one (inf: none)."""
+        occ = self.grid[i]
+        if not occ.any():
+            return np.full(occ.shape, np.inf)
+        return ndimage.distance_transform_edt(~occ, sampling=self.cfg.map_cell)
+
+    def cell(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The map cells (M,), (M,) of points ``pos`` (M, >=2) in the frame of the bounds, clipped to the grid."""
+        nx, ny = self.grid.shape[1:]
+        res = self.cfg.map_cell
+        a = np.clip(np.floor((pos[:, 0] - self.lo[0]) / res), 0, nx - 1).astype(np.int64)
+        b = np.clip(np.floor((pos[:, 1] - self.lo[1]) / res), 0, ny - 1).astype(np.int64)
+        return a, b
+
+    def _goal_disc(self, goal: np.ndarray) -> np.ndarray:
+        cx, cy = self.centres()
+        return np.hypot(cx[:, None] - goal[0], cy[None, :] - goal[1]) <= self.cfg.goal_radius
+
+    def _diag(self) -> float:
+        return float(np.hypot(*(np.array(self.grid.shape[1:]) * self.cfg.map_cell)))
 
     def plan(self, i: int, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """The point (2,) ``lookahead`` metres along the plan over flight ``i``'s map, or NaN: fly the true goal.

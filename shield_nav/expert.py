@@ -764,7 +764,7 @@ class PlannerController:
         every = np.arange(n)
         phi0 = self._phi(env, np.repeat(ids, 7), np.repeat(anchor, 7), pts, rows=np.repeat(every, 7)).reshape(n, 7)
         slope = np.abs(phi0[:, 1:4] - phi0[:, 4:7]).max(axis=1) / (2 * h)
-        fallback = slope < ec.flat_slope
+        fallback = self._closed(env, slope)
         self.fallback = fallback
         p = self._phi_fields(env, ids, anchor, rows=every)
         q = p
@@ -784,6 +784,14 @@ class PlannerController:
         else:
             self.committed = np.zeros(n, dtype=bool)
         return path, clear
+
+    def _closed(self, env: Any, slope: np.ndarray) -> np.ndarray:
+        """(N,) bool: the envs that descend the narrow field.
+
+        Those whose inflated field has no way from the vehicle: its largest slope ``slope`` (N,) there is below
+        ``flat_slope``.
+        """
+        return slope < self.ec.flat_slope
 
     def _descend(self, env: Any, x: np.ndarray, k_steps: int, fallback: np.ndarray, fields: tuple) -> tuple:
         """Raw paths (N, k_steps+1, 3) from ``x`` (N, 3) down the fields (``_trace_kernel``), and their ESDF."""
@@ -1069,7 +1077,11 @@ class CameraMapPlanner(PlannerController):
     flight's own: a Dijkstra over the 2D map of its depth images (:class:`shield_nav.escape.CameraMap`, unmapped
     space free, mapped cells inflated by ``camera_map.map_inflate``, to a disc of ``camera_map.goal_radius`` round the
     goal), replanned every ``camera_map.replan_s`` and extended over the volume's height by the height difference to
-    the goal (as the scene's field grows away from the goal's height). Against the ``expert`` row
+    the goal (as the scene's field grows away from the goal's height). Where the vehicle stands within
+    ``map_inflate`` of what it mapped, or that field is flat, the path descends the expert's narrow field built on the
+    same map instead (:meth:`shield_nav.escape.CameraMap.narrow_field`: the vehicle radius, ``narrow_clearance``,
+    ``narrow_weight``), and the tracker flies those flights as the expert flies its narrow-field ones. Against the
+    ``expert`` row
     on the same trials it measures what the route a flyer without the map could know costs (docs/expert.md, "What an
     onboard map gives").
     """
@@ -1091,6 +1103,10 @@ class CameraMapPlanner(PlannerController):
         self._res = np.full(n, res, dtype=np.float64)
         self._offset = np.arange(n, dtype=np.int64) * size
         self._phi_flat = np.zeros(n * size, dtype=np.float32)
+        self._narrow = self.ec.narrow_clearance > 0
+        self._phi_narrow = np.zeros(n * size if self._narrow else 0, dtype=np.float32)
+        self._radius = float(env.field_stack.scene_fields(int(env.scene_id_buf[0])).vehicle_radius)
+        self._clear = np.full((n, nx, ny), np.inf, dtype=np.float32)  # each flight's distance to what it mapped
         self._step = 0
         self._env = env
 
@@ -1104,13 +1120,31 @@ class CameraMapPlanner(PlannerController):
             self.reset(env)
         size = int(self._shape[0].prod())
         z = self._origin[0, 2] + np.arange(self._nz) * self.ec.camera_map.map_cell  # the layers' heights
+        ec = self.ec
         for i in self._map.due(env, self._step):
-            phi = self.phi_map(int(i), env.goal_buf[i])
             up = np.abs(z - env.goal_buf[i, 2])  # the climb or descent to the goal's height (the scene's field has it)
             o = int(self._offset[i])
+            phi = self.phi_map(int(i), env.goal_buf[i])
             self._phi_flat[o : o + size] = (phi[:, :, None] + up[None, None, :]).astype(np.float32).ravel()
+            if self._narrow:
+                self._clear[i] = self._map.clearance(int(i))
+                phi = self._map.narrow_field(int(i), env.goal_buf[i], self._radius, ec.narrow_clearance,
+                                             ec.narrow_weight)  # fmt: skip
+                self._phi_narrow[o : o + size] = (phi[:, :, None] + up[None, None, :]).astype(np.float32).ravel()
         self._step += 1
         return super().commands(env)
+
+    def _closed(self, env: Any, slope: np.ndarray) -> np.ndarray:
+        """The flights that descend the narrow field over their map.
+
+        The expert's test, and where the vehicle stands within ``map_inflate`` of what it mapped (its inflated map has
+        no way from there); the latter off with ``narrow_clearance`` 0, as the expert's narrow field is.
+        """
+        flat = super()._closed(env, slope)
+        if not self._narrow:
+            return flat
+        a, b = self._map.cell(env.local_pos)
+        return flat | (self._clear[np.arange(env.num_envs), a, b] <= self.ec.camera_map.map_inflate)
 
     def _phi(self, env: Any, ids: np.ndarray, anchor: np.ndarray, pts: np.ndarray, own: bool = True,
              rows: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
@@ -1118,13 +1152,25 @@ class CameraMapPlanner(PlannerController):
             raise ValueError("expert_cammap: a field lookup without its flights")
         out = np.empty(len(rows))
         e1, e3 = np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
+        values = self._fields_flat(own)
         trilinear_batch(np.asarray(rows, dtype=np.int64), np.ascontiguousarray(pts, dtype=np.float64), self._offset,
-                        self._shape, self._origin, self._res, e1, e3, self._phi_flat, False, False, True, e1, e3,
+                        self._shape, self._origin, self._res, e1, e3, values, False, False, True, e1, e3,
                         out)  # fmt: skip
         return out
+
+    def _fields_flat(self, own: bool) -> np.ndarray:
+        """The flights' fields, flattened: the inflated map's (``own``), else the narrow one where it is built."""
+        return self._phi_flat if own or not self._narrow else self._phi_narrow
 
     def _phi_fields(self, env: Any, ids: np.ndarray, anchor: np.ndarray, own: bool = True,
                     rows: np.ndarray | None = None) -> tuple:  # fmt: skip
         if rows is None:
             raise ValueError("expert_cammap: a field lookup without its flights")
-        return np.asarray(rows, dtype=np.int64), self._offset, self._shape, self._origin, self._res, self._phi_flat
+        return (
+            np.asarray(rows, dtype=np.int64),
+            self._offset,
+            self._shape,
+            self._origin,
+            self._res,
+            self._fields_flat(own),
+        )

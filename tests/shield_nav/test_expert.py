@@ -124,6 +124,45 @@ def test_the_camera_map_experts_field_is_the_path_length_round_what_its_camera_m
     )
 
 
+def test_the_camera_map_experts_narrow_field_keeps_to_a_corridor_its_inflated_map_closes():
+    """The camera-map expert's corridor mode on a 20 x 10 m map of 0.2 m cells: a wall at x = 10.1 m closes the map
+    but for a corridor along y between mapped rows at y = 4.5 and 5.5 m (x 6.1-14.1 m). Its interior cells lie 0.2 or
+    0.4 m from a wall, so the 0.5 m inflation closes it: the inflated field is flat (unreachable) at (2.1, 5.1). The
+    narrow field passes the cells more than the vehicle radius (0.2 m) from the walls (y = 4.9 and 5.1), each metre
+    there weighed 1 + 4 (0.6 - 0.4) / 0.6 = 7/3, so 4 m along the corridor's middle add 28/3 m; the cells next to the
+    walls (0.2 m) are not traversable, so the field climbs towards them. A vehicle 0.4 m from a mapped wall takes the
+    narrow field, one 3 m from everything mapped the expert's test."""
+    from types import SimpleNamespace
+
+    from envs.camera.config import CameraConfig
+    from shield_nav.escape import CameraMap
+
+    planner = make_baseline("expert_cammap", BaselineConfig())
+    ec = planner.ec
+    assert (ec.narrow_clearance, ec.narrow_weight, ec.camera_map.map_inflate) == (0.6, 4.0, 0.5)
+    cmap = CameraMap(ec.camera_map, 2, CameraConfig(), np.zeros(2), np.array([20.0, 10.0]))
+    grid = cmap.grid[0]
+    grid[50, :] = True
+    grid[30:71, 22] = grid[30:71, 27] = True
+    grid[50, 23:27] = False  # the corridor's way through the wall
+    goal = np.array([18.0, 5.0, 1.5])
+    planner._map = cmap
+    phi = planner.phi_map(0, goal)
+    assert phi[10, 25] == phi[10, 5] == phi.max()  # closed: the unreachable value, flat round the vehicle
+    q = cmap.narrow_field(0, goal, 0.2, ec.narrow_clearance, ec.narrow_weight)
+    assert q[40, 25] - q[60, 25] == pytest.approx(4.0 * 7.0 / 3.0, abs=1e-3)
+    assert q[40, 24] == pytest.approx(q[40, 25], abs=1e-3)  # both 0.4 m from a wall
+    assert q[40, 23] > q[40, 24] + 0.1  # 0.2 m from the wall: not traversable, filled from its neighbour
+    assert q[10, 25] < phi.max()  # the narrow field has a way where the inflated one has none
+    free = cmap.narrow_field(1, goal, 0.2, ec.narrow_clearance, ec.narrow_weight)  # nothing mapped: metres
+    assert free[10, 25] == pytest.approx(16.1 - 2.1, abs=0.1)
+    planner._narrow = True
+    planner._clear = np.stack([cmap.clearance(0), cmap.clearance(0)]).astype(np.float32)
+    env = SimpleNamespace(local_pos=np.array([[8.1, 4.9, 1.5], [2.1, 2.1, 1.5]]), num_envs=2)
+    np.testing.assert_array_equal(planner._closed(env, np.array([1.0, 1.0])), [True, False])
+    np.testing.assert_array_equal(planner._closed(env, np.array([1.0, 0.0])), [True, True])  # flat: the expert's
+
+
 def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_image():
     """In a real env, after one command: the field the path descends, read at cell centres through the kernel's
     lookup (rows = flights), is each flight's own map field plus the height difference to its goal; a non-rendering
@@ -141,6 +180,11 @@ def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_ima
             pts = np.tile([lo[0] + (a + 0.5) * res, lo[1] + (b + 0.5) * res, z], (4, 1))
             got = planner._phi(env, env.scene_id_buf, env.anchor_buf, pts, rows=rows)
             want = [planner.phi_map(i, env.goal_buf[i])[a, b] + abs(z - env.goal_buf[i, 2]) for i in range(4)]
+            np.testing.assert_allclose(got, want, rtol=1e-6)
+            got = planner._phi(env, env.scene_id_buf, env.anchor_buf, pts, own=False, rows=rows)  # the narrow field
+            want = [planner._map.narrow_field(i, env.goal_buf[i], planner._radius, planner.ec.narrow_clearance,
+                                              planner.ec.narrow_weight)[a, b] + abs(z - env.goal_buf[i, 2])
+                    for i in range(4)]  # fmt: skip
             np.testing.assert_allclose(got, want, rtol=1e-6)
     blind = NavigationEnv(num_envs=2, render_depth=False, **SMALL)
     blind.reset(seed=3)

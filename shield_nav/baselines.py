@@ -162,10 +162,20 @@ class MapGuide:
         self.map = CameraMap.for_env(cfg, env)
         self.target = np.full((env.num_envs, 2), np.nan)
 
-    def __call__(self, env: Any, step: int) -> np.ndarray:
-        """Unit guide directions (N, 3) at control step ``step`` (counted from the reset; any subset of steps)."""
+    def __call__(
+        self, env: Any, step: int, among: np.ndarray | None = None, now: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Unit guide directions (N, 3) at control step ``step`` (counted from the reset; any subset of steps).
+
+        ``among`` (N,) bool: plan only these flights when due (the others' images are still mapped); default all.
+        ``now`` (N,) bool: flights planned at this call whether due or not.
+        """
         pos, goal = env.local_pos, env.goal_buf
-        for i in self.map.due(env, step):
+        due = self.map.due(env, step)
+        todo = due if among is None else due[among[due]]
+        if now is not None:
+            todo = np.union1d(todo, np.flatnonzero(now))
+        for i in todo:
             self.target[i] = self.map.plan(int(i), pos[i], goal[i])
         guide = _unit(goal - pos)
         aim = np.isfinite(self.target[:, 0])  # NaN: the plan reaches the goal region, fly at the goal
@@ -345,6 +355,7 @@ class ReactivePlanner(Controller):
         self._v_des = np.zeros((n, 3))
         self._psi = _heading(env.vehicles.R_wb).copy()
         self._dir = np.zeros((n, 3))
+        self._planned = np.zeros(n, dtype=bool)  # flights planned at least once since the reset
         self._step = 0
         self._map = MapGuide(self.cfg.reactive.camera_map, env) if self.cfg.reactive.guidance == "map" else None
 
@@ -378,18 +389,27 @@ class ReactivePlanner(Controller):
         self._psi[i] = a[k]
         self._dir[i] = dirs[k]
 
-    def commands(self, env: Any) -> np.ndarray:  # noqa: D102
+    def commands(self, env: Any, among: np.ndarray | None = None) -> np.ndarray:
+        """Commands (N, 4) for every env.
+
+        ``among`` (N,) bool: plan only these flights (the others' commands are stale; their images still enter a
+        ``map`` guide), and a flight new to ``among`` plans at once. Default all.
+        """
         if self._v_des is None:
             self.reset(env)
-        if self._step % self.cfg.reactive.replan_every == 0:
+        live = ~env.frozen_buf if among is None else ~env.frozen_buf & among
+        fresh = live & ~self._planned
+        if self._step % self.cfg.reactive.replan_every == 0 or fresh.any():
             if self.cfg.reactive.guidance == "geodesic":
                 guide = self._oracle.guide(env, env.local_pos)
             elif self._map is not None:
-                guide = self._map(env, self._step)
+                guide = self._map(env, self._step, among, fresh)
             else:
                 guide = _unit(env.goal_buf - env.local_pos)
-            for i in np.flatnonzero(~env.frozen_buf):
+            every = self._step % self.cfg.reactive.replan_every == 0
+            for i in np.flatnonzero(live if every else fresh):
                 self._plan(env, int(i), guide)
+            self._planned |= live if every else fresh
         self._step += 1
         a = self.cfg.tracking.k_v * (self._v_des - env.vehicles.vel_w)
         return accel_to_command(a, self._psi, self.cfg.tracking, env.cfg.vehicle.gravity)

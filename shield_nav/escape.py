@@ -59,7 +59,7 @@ GOAL_COLUMNS = _slice("goal_xy_h")
 """Columns of the heading-frame goal vector in the state (two)."""
 ROT_COLUMNS = _slice("R_wb")
 """Columns of the body-to-world rotation (row-major) in the state (nine)."""
-ESCAPE_KINDS = ("sideways", "map")
+ESCAPE_KINDS = ("sideways", "map", "handover")
 """Values of :attr:`EscapeConfig.kind`."""
 
 
@@ -94,7 +94,9 @@ class EscapeConfig:
     """With ``circle_turns`` > 0: the window [s] of the net heading rotation."""
     kind: str = "sideways"
     """``sideways``: the escape above. ``map``: from its first stall on, a flight follows a planner over the map of
-    what its camera has seen (see :class:`StallEscape`; needs the flight volume's bounds, the camera and R_wb)."""
+    what its camera has seen (see :class:`StallEscape`; needs the flight volume's bounds, the camera and R_wb).
+    ``handover``: from its first stall on, a flight is flown by the weight-free ``reactive_map`` planner instead of
+    the policy (the evaluation harness swaps the commands; :attr:`StallEscape.guided` says which flights)."""
     map_cell: float = 0.2
     """``map``: the occupancy grid's cell [m] (2D, over the flight volume's horizontal bounds)."""
     map_range: float = 12.0
@@ -193,6 +195,13 @@ class StallEscape:
         circling = self._circling(state, t)
         if cfg.kind == "map":
             return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor, dist, circling)
+        if cfg.kind == "handover":  # only the stall rules: the harness hands the guided flights to a planner
+            stalled = live & ~self.guided & ((now - self.best_t >= cfg.window_s) | circling)
+            self._count_circling(stalled, circling & (now - self.best_t < cfg.window_s), t)
+            self.guided |= stalled
+            self.count[stalled] = 1
+            self.escape_steps += self.guided & live
+            return state
         if cfg.bounds_margin > 0 and bounds is None:
             raise ValueError("stall escape: escape.bounds_margin > 0 needs the flight volume's bounds")
         use_bounds = bounds if cfg.bounds_margin > 0 else None

@@ -174,6 +174,10 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         ctrl.reset(env)
     shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
     escape = StallEscape(cfg.escape, n, env.cfg.vehicle.command_dt, env.cfg.camera) if row.escape else None
+    handover = None  # escape.kind 'handover': a stalled flight is flown by the camera-map planner from then on
+    if escape is not None and escape.cfg.kind == "handover":
+        handover = make_baseline("reactive_map", cfg.baselines)
+        handover.reset(env)
     volume = (np.asarray(env.scenes[0].bounds_lo[:2]), np.asarray(env.scenes[0].bounds_hi[:2]))  # one scene per unit
     pick_hypotheses = shield is not None and policy is not None and shield.cfg.hypotheses != "top"
     ids = np.zeros(n, dtype=np.int64)
@@ -209,9 +213,13 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
                 act, h = policy.step(policy.state_of(obs), obs["depth"], h)
             else:
                 act = teacher.step(priv["teacher"])  # type: ignore[union-attr]
-            cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None else None
+            cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None or handover else None
         else:
             act, cmd = zeros, ctrl.commands(env)  # type: ignore[union-attr]
+        if handover is not None:  # called every step: the planner maps every flight's images from the start
+            handed = escape.guided & live  # type: ignore[union-attr]
+            planned = handover.commands(env, among=handed)  # type: ignore[call-arg]
+            cmd[handed] = planned[handed]  # type: ignore[index]
         step_active = np.zeros(n, dtype=bool)
         if shield is not None:
             li = np.flatnonzero(live)

@@ -245,6 +245,19 @@ def test_finished_flights_start_no_escape_and_bad_input_is_named():
         StallEscape(EscapeConfig(), 2, DT).apply(bad, pos, goal, depth, 0)
 
 
+def test_the_handover_kind_only_marks_stalled_flights_and_leaves_the_state():
+    """``kind: handover``: a hovering flight is marked at the 5 s window (step 500) and stays marked; a flight that
+    closes on its goal never is; the policy's state comes back unchanged (the harness swaps the commands)."""
+    esc = StallEscape(EscapeConfig(kind="handover"), 2, DT)
+    goal = np.array([[30.0, 0.0, 1.0], [30.0, 0.0, 1.0]])
+    state, depth = _state(2), _depth(2, 5.0, 5.0)
+    for t in range(800):
+        pos = np.array([[0.0, 0.0, 1.0], [0.5 * t * DT, 0.0, 1.0]])
+        assert esc.apply(state, pos, goal, depth, t) is state
+        assert esc.guided.tolist() == [t >= 500, False], t
+    assert esc.count.tolist() == [1, 0] and esc.escape_steps.tolist() == [300, 0]
+
+
 def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
     """A window longer than any flight never fires: the flights are Full's, step for step. A window of 0.2 s with
     1 km of progress asked fires in every flight at 0.2 s, and the flights differ. Only a depth policy may escape."""
@@ -268,6 +281,18 @@ def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
     assert all(t["escape"]["escapes"] >= 1 for t in fired)
     for t, p in zip(fired, plain, strict=True):  # a point every 10 steps: the same up to 0.2 s, the first to
         assert t["traj"][:3] == p["traj"][:3] and t["traj"][3] != p["traj"][3]  # see an escaped step differs
+    cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=1000.0",
+                                    "escape.kind=handover"])  # fmt: skip
+    (spec,) = E.plan_units(E.prepare(cfg))
+    kept = E.run_unit(spec)["trials"]  # the planner maps every flight all along; it flies none until a stall
+    assert [t["traj"] for t in kept] == [t["traj"] for t in plain]
+    cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=0.2",
+                                    "escape.min_progress=1000.0", "escape.kind=handover"])  # fmt: skip
+    (spec,) = E.plan_units(E.prepare(cfg))
+    handed = E.run_unit(spec)["trials"]
+    for t, p in zip(handed, plain, strict=True):  # handed over at step 20 (0.2 s), flown by the planner to the end
+        assert t["escape"] == {"escapes": 1, "escape_steps": t["steps"] - 20, "by_circling": 0}
+        assert t["traj"][:3] == p["traj"][:3] and t["traj"][3] != p["traj"][3]
     with pytest.raises(E.EvalError, match="has escape: true but controller 'oracle'"):
         E.resolve_rows(E.load_eval_config(None, [*base, "configurations=[mine]", "rows.mine.controller=oracle",
                                                  "rows.mine.escape=true"]))  # fmt: skip

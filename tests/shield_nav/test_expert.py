@@ -192,6 +192,30 @@ def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_ima
         make_baseline("expert_cammap", BaselineConfig()).commands(blind)
 
 
+def test_the_map_planner_plans_only_the_flights_it_is_given_and_a_new_one_at_once():
+    """``commands(env, among)``: at a replan step only the flights in ``among`` get a plan (a primitive, a map target);
+    a flight added between replan steps is planned at that call; every flight's image is mapped all along."""
+    from shield_nav.escape import CameraMap
+
+    env = NavigationEnv(num_envs=3, **SMALL)
+    env.reset(seed=3)
+    planner = make_baseline("reactive_map", BaselineConfig())
+    planner.commands(env, among=np.array([True, False, False]))  # step 0: a replan and map step
+    assert np.abs(planner._v_des[0]).sum() > 0 and not planner._v_des[1:].any()
+    assert planner._planned.tolist() == [True, False, False]
+    ref = CameraMap.for_env(planner.cfg.reactive.camera_map, env)  # all three images mapped, as a map of its own
+    ref.observe(np.arange(3), env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2]))
+    np.testing.assert_array_equal(planner._map.map.grid, ref.grid)
+    assert ref.grid.any()
+    assert np.isfinite(planner._map.target[0]).all() and np.isnan(planner._map.target[1:]).all()
+    v0 = planner._v_des[0].copy()
+    env.step(np.zeros((3, 4)))
+    planner.commands(env, among=np.array([True, True, False]))  # step 1: no replan, but flight 1 is new
+    assert np.abs(planner._v_des[1]).sum() > 0 and not planner._v_des[2].any()
+    np.testing.assert_array_equal(planner._v_des[0], v0)  # flight 0 keeps its plan until the next replan step
+    assert np.isfinite(planner._map.target[1]).all() and np.isnan(planner._map.target[2]).all()
+
+
 def test_reactive_planner_aligns_with_its_guidance():
     """With only the alignment term in the score, the reactive planner picks the primitive closest to its guide:
     the goal direction (``euclidean``), -grad Phi at the vehicle (``geodesic``, Phi differenced here by hand) or the

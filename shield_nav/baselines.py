@@ -399,14 +399,14 @@ class ReactivePlanner(Controller):
             self.reset(env)
         live = ~env.frozen_buf if among is None else ~env.frozen_buf & among
         fresh = live & ~self._planned
-        if self._step % self.cfg.reactive.replan_every == 0 or fresh.any():
+        every = self._step % self.cfg.reactive.replan_every == 0
+        if every or fresh.any():
             if self.cfg.reactive.guidance == "geodesic":
                 guide = self._oracle.guide(env, env.local_pos)
             elif self._map is not None:
                 guide = self._map(env, self._step, among, fresh)
             else:
                 guide = _unit(env.goal_buf - env.local_pos)
-            every = self._step % self.cfg.reactive.replan_every == 0
             for i in np.flatnonzero(live if every else fresh):
                 self._plan(env, int(i), guide)
             self._planned |= live if every else fresh

@@ -415,15 +415,18 @@ class CameraMap:
         res = self.cfg.map_cell
         return self.lo[0] + (np.arange(nx) + 0.5) * res, self.lo[1] + (np.arange(ny) + 0.5) * res
 
-    def field(self, i: int, goal: np.ndarray, covered_goal: str = "nan") -> tuple[np.ndarray, np.ndarray] | None:
+    def field(
+        self, i: int, goal: np.ndarray, covered_goal: str = "nan", clear: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         """Flight ``i``'s field (nx, ny) over its map and the goal disc's mask (nx, ny).
 
         The field is the path length [m] to the disc of ``goal_radius`` round ``goal``, mapped cells inflated by
         ``map_inflate`` and unmapped ones free. Where the mapped cells cover the whole disc: None (``covered_goal``
-        ``"nan"``), or the disc kept a source (``"keep"``).
+        ``"nan"``), or the disc kept a source (``"keep"``). ``clear``: :meth:`clearance` of flight ``i`` where the
+        caller has it.
         """
         cfg = self.cfg
-        free = self.clearance(i) > cfg.map_inflate
+        free = (self.clearance(i) if clear is None else clear) > cfg.map_inflate
         to_goal = self._goal_disc(goal)
         if not (free & to_goal).any():
             if covered_goal == "nan":
@@ -431,18 +434,20 @@ class CameraMap:
             free |= to_goal
         return geodesic_field(free[..., None], to_goal[..., None], cfg.map_cell, self._diag())[0][..., 0], to_goal
 
-    def narrow_field(self, i: int, goal: np.ndarray, radius: float, clearance: float, weight: float) -> np.ndarray:
+    def narrow_field(
+        self, i: int, goal: np.ndarray, radius: float, clearance: float, weight: float, clear: np.ndarray | None = None
+    ) -> np.ndarray:
         """Flight ``i``'s narrow field (nx, ny), the expert's narrow field on the camera's map.
 
         The weighted path length to the goal disc through the cells more than ``radius`` from every mapped cell, each
-        metre weighed ``1 + weight * max(0, clearance - d) / clearance`` (``d``
-        the distance to the nearest mapped cell), so its paths keep to the middle of corridors that ``map_inflate``
-        closes. The goal disc stays a source where mapped cells cover it.
+        metre weighed ``1 + weight * max(0, clearance - d) / clearance`` (``d`` the distance to the nearest mapped
+        cell), so its paths keep to the middle of corridors that ``map_inflate`` closes. The goal disc stays a source
+        where mapped cells cover it. ``clear``: :meth:`clearance` of flight ``i`` where the caller has it.
         """
         if not (radius >= 0 and clearance > 0 and weight >= 0):
             raise ValueError(f"camera map: narrow field needs radius >= 0, clearance > 0, weight >= 0; got {radius}, "
                              f"{clearance}, {weight}")  # fmt: skip
-        d = self.clearance(i)
+        d = self.clearance(i) if clear is None else clear
         free = d > radius
         to_goal = self._goal_disc(goal)
         if not (free & to_goal).any():

@@ -1124,12 +1124,13 @@ class CameraMapPlanner(PlannerController):
         for i in self._map.due(env, self._step):
             up = np.abs(z - env.goal_buf[i, 2])  # the climb or descent to the goal's height (the scene's field has it)
             o = int(self._offset[i])
-            phi = self.phi_map(int(i), env.goal_buf[i])
+            clear = self._map.clearance(int(i))  # one distance transform for both fields and the mode test
+            phi = self._map.field(int(i), env.goal_buf[i], covered_goal="keep", clear=clear)[0]  # type: ignore[index]
             self._phi_flat[o : o + size] = (phi[:, :, None] + up[None, None, :]).astype(np.float32).ravel()
             if self._narrow:
-                self._clear[i] = self._map.clearance(int(i))
+                self._clear[i] = clear
                 phi = self._map.narrow_field(int(i), env.goal_buf[i], self._radius, ec.narrow_clearance,
-                                             ec.narrow_weight)  # fmt: skip
+                                             ec.narrow_weight, clear=clear)  # fmt: skip
                 self._phi_narrow[o : o + size] = (phi[:, :, None] + up[None, None, :]).astype(np.float32).ravel()
         self._step += 1
         return super().commands(env)

@@ -36,6 +36,11 @@ through :data:`CIRCLE_TURNS` full turns or more, net, within some :data:`CIRCLE_
 (:func:`max_turns`; outputs with the heading column). A flight that orbits a pocket turns its camera round and round
 in one direction; one that threads clutter turns left and right, and its net rotation stays small. Per row and speed
 it counts the circling flights by outcome (:func:`circling`).
+
+``--sides`` asks of the successful flights where they went: the share of each one's recorded points within
+``--margin`` (default :data:`SIDE_MARGIN`) of the flight volume's lateral sides, the y bounds that run along the
+start-to-goal axis (:func:`sides`). A flight that threads a scene keeps off them; one that finds a way along the
+scene's edge does not.
 """
 
 from __future__ import annotations
@@ -62,6 +67,8 @@ MAX_HIT_DISTANCE = 0.6
 """A nearest surface farther than this (m) from the final position is ``unresolved``."""
 YAW_WINDOW_S = 0.5
 """The window [s] before a crash over which :func:`yaw_rate_before` averages the yaw rate."""
+SIDE_MARGIN = 1.5
+"""``--sides``: a point within this distance [m] of the flight volume's lateral sides is beside them."""
 OUTCOMES = ("success", "collision", "timeout", "out_of_bounds")
 """A trial's outcomes, in the order :func:`format_circling` lists them."""
 
@@ -194,14 +201,18 @@ def point_times(steps: int, every: int, dt: float) -> np.ndarray:
 
 
 def _crashes(
-    out_dir: str, rows: list[str] | None, speeds: list[float] | None, outcome: str | None = "collision"
+    out_dir: str,
+    rows: list[str] | None,
+    speeds: list[float] | None,
+    outcome: str | None = "collision",
+    with_scene: bool = False,
 ) -> Iterator[tuple[tuple[str, float], Scene | None, list[np.ndarray], list[np.ndarray], list[str]]]:
     """Per unit of an eval folder: ``(row, speed)``, its scene, the picked trajectories, times and outcomes.
 
-    The scene is ``None`` without crashes (and for any ``outcome`` but ``collision``: the other breakdowns need
-    none); the times [s] come from :func:`point_times`. ``outcome`` picks the trials (``collision``, ``timeout``;
-    ``None``: every trial). Except for collisions, the goal rides along as each trajectory's last row (its x, y, z;
-    NaN in the other columns).
+    The scene is ``None`` without picked trials (and for any ``outcome`` but ``collision`` unless ``with_scene``: the
+    other breakdowns need none); the times [s] come from :func:`point_times`. ``outcome`` picks the trials
+    (``collision``, ``timeout``, ``success``; ``None``: every trial). Except for collisions, the goal rides along as
+    each trajectory's last row (its x, y, z; NaN in the other columns).
     """
     files = sorted(glob.glob(os.path.join(out_dir, "units", "*.json")))
     cfg = None
@@ -220,7 +231,7 @@ def _crashes(
         for t in hits:
             if not t.get("traj"):
                 raise ValueError(f"{path}: trial {t.get('trial')} has no trajectory (trajectory_every too large?)")
-        if not hits or outcome != "collision":
+        if not hits or (outcome != "collision" and not with_scene):
             scene = None
         elif cfg is not None:
             from shield_nav.evaluation import flown_scene
@@ -354,6 +365,42 @@ def circling(
     return out
 
 
+def sides(
+    out_dir: str, rows: list[str] | None = None, speeds: list[float] | None = None, margin: float = SIDE_MARGIN
+) -> dict[tuple[str, float, int], list[float]]:
+    """(row, speed, scene index) -> each successful flight's share of points beside the volume's lateral sides.
+
+    A recorded point is beside them within ``margin`` [m] of ``y`` = the scene's ``bounds_lo`` or ``bounds_hi`` (the
+    sides along the start-to-goal axis); the shares are in trial order.
+
+    Raises:
+        ValueError: ``margin`` not finite and positive.
+    """
+    if not (math.isfinite(margin) and margin > 0):
+        raise ValueError(f"margin must be finite and > 0, got {margin}")
+    out: dict[tuple[str, float, int], list[float]] = {}
+    for (row, speed), scene, trajs, _, _ in _crashes(out_dir, rows, speeds, outcome="success", with_scene=True):
+        if scene is None:
+            continue
+        lo, hi = scene.bounds_lo[1], scene.bounds_hi[1]
+        for tr in trajs:
+            y = tr[:-1, 1]  # the goal rides along as the last row
+            beside = (y - lo <= margin) | (hi - y <= margin)
+            out.setdefault((row, speed, scene.index), []).append(float(beside.mean()))
+    return out
+
+
+def format_sides(result: dict[tuple[str, float, int], list[float]], margin: float = SIDE_MARGIN) -> str:
+    """Markdown table of :func:`sides`: per scene, the successes and their shares beside the sides."""
+    lines = [f"| row | speed | scene | successes | share within {margin:g} m of the sides: min / median / max | "
+             "half or more beside |", "|---|---:|---:|---:|---|---:|"]  # fmt: skip
+    for (row, speed, scene), v in sorted(result.items()):
+        a = np.asarray(v)
+        lines.append(f"| {row} | {speed:g} | {scene} | {len(a)} | {a.min():.2f} / {np.median(a):.2f} / {a.max():.2f} "
+                     f"| {int((a >= 0.5).sum())} |")  # fmt: skip
+    return "\n".join(lines)
+
+
 def format_circling(result: dict[tuple[str, float], dict[str, list[int]]]) -> str:
     """Markdown table of :func:`circling`: circling flights / flights, per outcome."""
     lines = ["| row | speed | flights | circling | " + " | ".join(o.replace("_", " ") for o in OUTCOMES) + " |",
@@ -484,6 +531,10 @@ def main(argv: list[str] | None = None) -> None:
                     help="how the time-outs end (stalled or still closing) instead of the collisions")  # fmt: skip
     ap.add_argument("--circling", action="store_true",
                     help="which flights flew in circles (net heading turns in a window), by outcome")  # fmt: skip
+    ap.add_argument("--sides", action="store_true",
+                    help="how much of each success flew beside the flight volume's lateral sides")  # fmt: skip
+    ap.add_argument("--margin", type=float, default=SIDE_MARGIN,
+                    help=f"--sides: the distance that counts as beside them, m (default {SIDE_MARGIN:g})")  # fmt: skip
     ap.add_argument("--hfov", type=float, default=CameraConfig().hfov_deg,
                     help="camera horizontal field of view, deg (default: the camera's)")  # fmt: skip
     a = ap.parse_args(argv)
@@ -494,8 +545,18 @@ def main(argv: list[str] | None = None) -> None:
         speeds = [float(s) for s in a.speeds.split(",") if s] or None
     except ValueError:
         ap.error(f"--speeds must be numbers, got {a.speeds!r}")
-    if a.timeouts + a.bearing + a.circling > 1:
-        ap.error("--timeouts, --bearing and --circling ask different questions; give one")
+    if a.timeouts + a.bearing + a.circling + a.sides > 1:
+        ap.error("--timeouts, --bearing, --circling and --sides ask different questions; give one")
+    if not (math.isfinite(a.margin) and a.margin > 0):
+        ap.error(f"--margin must be finite and > 0, got {a.margin}")
+    if a.sides:
+        res_s = sides(a.out_dir, rows, speeds, a.margin)
+        if a.json:
+            print(json.dumps([{"row": r, "speed": sp, "scene": sc, "shares": v}
+                              for (r, sp, sc), v in sorted(res_s.items())]))  # fmt: skip
+        else:
+            print(format_sides(res_s, a.margin))
+        return
     if a.circling:
         res_c = circling(a.out_dir, rows, speeds)
         if a.json:

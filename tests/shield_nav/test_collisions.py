@@ -17,6 +17,7 @@ from shield_nav.collisions import (
     classify_hit,
     format_bearings,
     format_circling,
+    format_sides,
     format_table,
     format_timeouts,
     last_progress,
@@ -25,6 +26,7 @@ from shield_nav.collisions import (
     point_times,
     primitive_class,
     shield_share_before,
+    sides,
     timeouts,
     yaw_rate_before,
 )
@@ -346,3 +348,34 @@ def test_circling_needs_the_heading_column(tmp_path):
                       "traj": np.c_[k * 0.1, np.zeros(11), np.ones(11)].tolist()}])  # fmt: skip
     with pytest.raises(ValueError, match="heading"):
         circling(str(tmp_path))
+
+
+def test_sides_share_of_each_success_by_hand(tmp_path, capsys):
+    """Ablation scene 0's volume spans y in [-16, 16]. Three successes of 11 points each: along y = 0 (none beside
+    the sides), along y = 15.0 (1.0 m from the side: all beside within 1.5 m, none within 0.5 m), and one whose first
+    4 points run at y = -15.2 and the other 7 at y = -10 (4 of 11 beside); a time-out along the side is not counted.
+    """
+    x = np.linspace(0.0, 60.0, 11)
+    line = lambda y: np.c_[x, np.broadcast_to(y, x.shape), np.full(11, 1.5), np.full(11, 3.0)].tolist()  # noqa: E731
+    goal = [63.0, 0.0, 1.5]
+    _unit(tmp_path, [
+        {"trial": 0, "outcome": "success", "goal": goal, "traj": line(0.0)},
+        {"trial": 1, "outcome": "success", "goal": goal, "traj": line(15.0)},
+        {"trial": 2, "outcome": "success", "goal": goal, "traj": line(np.r_[np.full(4, -15.2), np.full(7, -10.0)])},
+        {"trial": 3, "outcome": "timeout", "goal": goal, "traj": line(15.5)},
+    ])  # fmt: skip
+    res = sides(str(tmp_path))
+    assert res.keys() == {("r", 3.0, 0)}
+    np.testing.assert_allclose(res[("r", 3.0, 0)], [0.0, 1.0, 4.0 / 11.0])
+    np.testing.assert_allclose(sides(str(tmp_path), margin=0.5)[("r", 3.0, 0)], [0.0, 0.0, 0.0])
+    assert "| r | 3 | 0 | 3 | 0.00 / 0.36 / 1.00 | 1 |" in format_sides(res)
+    assert sides(str(tmp_path), speeds=[5.0]) == {}
+    main([str(tmp_path), "--sides", "--margin", "0.9", "--json"])
+    got = json.loads(capsys.readouterr().out.strip())
+    assert got[0]["scene"] == 0 and got[0]["shares"] == pytest.approx([0.0, 0.0, 4.0 / 11.0])
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--sides", "--circling"])
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--sides", "--margin", "-1"])
+    with pytest.raises(ValueError, match="margin"):
+        sides(str(tmp_path), margin=math.nan)

@@ -196,10 +196,7 @@ class StallEscape:
         if cfg.kind == "map":
             return self._apply_map(state, pos, goal, depth_m, t, live, bounds, R_wb, floor, dist, circling)
         if cfg.kind == "handover":  # only the stall rules: the harness hands the guided flights to a planner
-            stalled = live & ~self.guided & ((now - self.best_t >= cfg.window_s) | circling)
-            self._count_circling(stalled, circling & (now - self.best_t < cfg.window_s), t)
-            self.guided |= stalled
-            self.count[stalled] = 1
+            self._guide_stalled(live, circling, t)
             self.escape_steps += self.guided & live
             return state
         if cfg.bounds_margin > 0 and bounds is None:
@@ -248,10 +245,7 @@ class StallEscape:
             self.map = CameraMap(cfg, self.n, self.camera, *bounds)  # type: ignore[arg-type]
         if t % cfg.map_every == 0:
             self.map.observe(np.flatnonzero(live), pos, R_wb, depth_m, floor)
-        stalled = live & ~self.guided & ((now - self.best_t >= cfg.window_s) | circling)
-        self._count_circling(stalled, circling & (now - self.best_t < cfg.window_s), t)
-        self.guided |= stalled
-        self.count[stalled] = 1
+        self._guide_stalled(live, circling, t)
         due = np.flatnonzero(self.guided & live & (now >= self.next_plan))
         for i in due:
             self.target[i] = self.map.plan(i, pos[i], goal[i])
@@ -263,6 +257,14 @@ class StallEscape:
         i = np.flatnonzero(steer)
         e = self.target[i] - pos[i, :2]
         return _with_goal_direction(state, i, e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-9))
+
+    def _guide_stalled(self, live: np.ndarray, circling: np.ndarray, t: int) -> None:
+        """``map`` and ``handover``: live flights not yet guided that stall now (either rule) are guided from now on."""
+        waited = t * self.dt - self.best_t >= self.cfg.window_s
+        stalled = live & ~self.guided & (waited | circling)
+        self._count_circling(stalled, circling & ~waited, t)
+        self.guided |= stalled
+        self.count[stalled] = 1
 
     def _circling(self, state: np.ndarray, t: int) -> np.ndarray:
         """(N,) bool: flights whose heading turned ``circle_turns`` or more, net, over the last ``circle_window_s``.
@@ -491,8 +493,7 @@ class CameraMap:
         nx, ny = phi.shape
         res = cfg.map_cell
         centres_x, centres_y = self.centres()
-        a = int(np.clip(np.floor((pos[0] - self.lo[0]) / res), 0, nx - 1))  # the cells observe marks
-        b = int(np.clip(np.floor((pos[1] - self.lo[1]) / res), 0, ny - 1))
+        a, b = (int(c[0]) for c in self.cell(pos[None]))  # the cells observe marks
         for _ in range(int(round(cfg.lookahead / res))):
             if to_goal[a, b]:
                 return np.full(2, np.nan)

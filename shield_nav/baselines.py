@@ -477,7 +477,31 @@ class PlannerExpert(OracleExpert):
         self.controller = PlannerController(cfg or BaselineConfig())
 
 
-EXPERTS = {"oracle": OracleExpert, "planner": PlannerExpert}
+class CameraMapExpert(OracleExpert):
+    """The camera-routed planning expert (:class:`shield_nav.expert.CameraMapPlanner`) as a DAgger expert.
+
+    Its route comes from the map of what each env's own camera has shown, so its labels turn where the images (and
+    their memory) explain a turn, not where only the scene's map would. In training, envs restart on their own: an
+    env whose episode restarts (``episode_length_buf`` 0 at the call) gets an empty map, its first image mapped at
+    once, and a plan in the same call. Its local geometry (the ESDF the tracker and speed profile read) is the
+    scene's, as in the ``expert_cammap`` row. The env must render depth (a distillation student reads it anyway).
+    """
+
+    def __init__(self, cfg: BaselineConfig | None = None) -> None:  # noqa: D107
+        self.controller = CameraMapPlanner(cfg or BaselineConfig())
+
+    def __call__(self, env: Any) -> np.ndarray:
+        """Expert actions (N, 4) for the env's current state; restarted envs first forget their map."""
+        ctl = self.controller
+        if getattr(ctl, "_env", None) is not env:
+            ctl.reset(env)
+        fresh = np.flatnonzero(np.asarray(env.episode_length_buf) == 0)
+        if fresh.size:
+            ctl.restart(env, fresh)
+        return super().__call__(env)
+
+
+EXPERTS = {"oracle": OracleExpert, "planner": PlannerExpert, "planner_cammap": CameraMapExpert}
 """Scripted experts a distillation run can imitate (``runner.expert.kind``)."""
 
 

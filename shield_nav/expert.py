@@ -1110,6 +1110,19 @@ class CameraMapPlanner(PlannerController):
         self._step = 0
         self._env = env
 
+    def restart(self, env: Any, ids: np.ndarray) -> None:
+        """Flights ``ids`` start anew (a training env's own reset): empty maps, their images mapped now, a plan due.
+
+        :meth:`commands` of this step then plans them on what their first image shows. Evaluation batches, which
+        start every flight together, need not call it (:meth:`reset` does the same for all).
+        """
+        ids = np.asarray(ids, dtype=np.int64)
+        m = self._map
+        m.grid[ids] = False
+        m.next_plan[ids] = 0
+        self._clear[ids] = np.inf
+        m.observe(ids, env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2]))
+
     def phi_map(self, i: int, goal: np.ndarray) -> np.ndarray:
         """Flight ``i``'s field (nx, ny) [m] over its current map: the path length to the goal disc round ``goal``."""
         return self._map.field(i, goal, covered_goal="keep")[0]  # type: ignore[index]

@@ -264,6 +264,43 @@ def test_unknown_oracle_guidance_fails_by_name():
     assert expert.controller.cfg.oracle.guidance == "euclidean"
 
 
+def test_the_camera_map_expert_forgets_a_restarted_envs_map_and_plans_it_on_its_first_image():
+    """``planner_cammap`` as a DAgger expert: after steps that mapped every env, env 1 restarts on its own; at the next
+    label its map is exactly its new first image's cells (an independent map of that image alone), the other envs
+    keep theirs, and the field its label descends is the one over that map (read through the kernel's lookup)."""
+    from shield_nav.baselines import EXPERTS
+    from shield_nav.escape import CameraMap
+
+    env = NavigationEnv(num_envs=3, **SMALL)
+    env.reset(seed=3)
+    expert = EXPERTS["planner_cammap"](BaselineConfig())
+    for _ in range(6):  # steps 0 and 5 map every image
+        act = expert(env)
+        assert act.shape == (3, 4) and np.isfinite(act).all() and np.abs(act).max() <= 1.0
+        env.step(act)
+    planner = expert.controller
+    kept = planner._map.grid[[0, 2]].copy()
+    assert planner._map.grid[1].any()
+    env.reset(options={"env_ids": np.array([1])})
+    assert env.episode_length_buf.tolist()[1] == 0 and min(env.episode_length_buf[[0, 2]]) > 0
+    act = expert(env)  # step 6: no mapping step, but env 1 is new
+    assert np.isfinite(act).all()
+    ref = CameraMap.for_env(planner.ec.camera_map, env)
+    ref.observe(
+        np.array([1]), env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2])
+    )
+    assert ref.grid[1].any()
+    np.testing.assert_array_equal(planner._map.grid[1], ref.grid[1])
+    np.testing.assert_array_equal(planner._map.grid[[0, 2]], kept)
+    want_field = ref.field(1, env.goal_buf[1], covered_goal="keep")[0]
+    res, lo = planner.ec.camera_map.map_cell, planner._map.lo
+    for a, b in ((10, 30), (60, 80), (150, 20)):
+        z = planner._origin[0, 2] + 7 * res
+        pts = np.array([[lo[0] + (a + 0.5) * res, lo[1] + (b + 0.5) * res, z]])
+        got = planner._phi(env, env.scene_id_buf[[1]], env.anchor_buf[[1]], pts, rows=np.array([1]))
+        np.testing.assert_allclose(got, [want_field[a, b] + abs(z - env.goal_buf[1, 2])], rtol=1e-6)
+
+
 def test_expert_group_follows_resets_and_steps():
     expert = OracleExpert()
     vec = RslRlVecEnv(NavigationEnv(num_envs=4, **SMALL), expert=expert)

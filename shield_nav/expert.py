@@ -1119,8 +1119,7 @@ class CameraMapPlanner(PlannerController):
         ids = np.asarray(ids, dtype=np.int64)
         m = self._map
         m.grid[ids] = False
-        m.next_plan[ids] = 0
-        self._clear[ids] = np.inf
+        m.next_plan[ids] = 0  # due now: commands() replans them (and their clearance) in this call
         m.observe(ids, env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2]))
 
     def phi_map(self, i: int, goal: np.ndarray) -> np.ndarray:

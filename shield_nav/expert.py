@@ -266,6 +266,11 @@ class ExpertConfig:
     more; docs/expert.md, "Below the tops")."""
     max_tilt_deg: float = 50.0
     """Tilt cap of the commanded thrust vector [deg] (the vehicle clamps at 50; 48 until 2026-11-29)."""
+    yaw_in_action: bool = False
+    """Hold the yaw reference within the policy's action range: at most ``action.yaw_range_deg`` from the env's yaw
+    base (``env.yaw_bases``), with roll and pitch solved at that yaw, so the thrust vector is the tracker's. Off
+    (default): the yaw follows the path's chord however far it leads, and a DAgger label, clipped into the action
+    range afterwards, turns the thrust vector with the cut yaw (docs/training.md, "Expert DAgger")."""
     camera_map: EscapeConfig = field(default_factory=lambda: EscapeConfig(kind="map", map_inflate=0.5, goal_radius=2.0))
     """The ``expert_cammap`` row only (:class:`CameraMapPlanner`): the map of what the flight's own camera has shown
     whose field its path descends instead of the scene's (its ``map_*`` keys, ``replan_s`` and ``goal_radius``, the
@@ -478,6 +483,17 @@ TRACKERS = ("chord", "tangent", "preview", "mppi")
 
 VISIBILITIES = ("map", "camera")
 """What the speed profile may plan on (:attr:`ExpertConfig.visibility`)."""
+
+
+def yaw_within(psi: np.ndarray, base: np.ndarray, range_deg: float) -> np.ndarray:
+    """Yaws ``psi`` (N,) [rad] held within ``range_deg`` of ``base`` (N,).
+
+    ``base + clip(wrap(psi - base), -range, range)`` where the lead is beyond the range, ``psi`` itself where not.
+    """
+    r = math.radians(range_deg)
+    psi = np.asarray(psi, dtype=np.float64)
+    lead = (psi - base + np.pi) % (2 * np.pi) - np.pi
+    return np.where(np.abs(lead) <= r, psi, base + np.clip(lead, -r, r))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -997,6 +1013,8 @@ class PlannerController:
             else:
                 a, v_ref = a_p, v_p
         psi = np.arctan2(chord[:, 1], chord[:, 0])
+        if ec.yaw_in_action:
+            psi = yaw_within(psi, env.yaw_bases, env.cfg.action.yaw_range_deg)
         track = replace(self.cfg.tracking, max_tilt_deg=ec.max_tilt_deg)
         self.last = {**plan, "v_ref": v_ref, "a": a, "k_ref": k_ref}
         return accel_to_command(a, psi, track, env.cfg.vehicle.gravity)

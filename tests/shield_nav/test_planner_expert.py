@@ -17,6 +17,7 @@ from shield_nav.expert import (
     speed_profile,
     visible_samples,
     windowed_curvature,
+    yaw_within,
 )
 
 SMALL = {"scenes.indices": [0, 1], "episode.initial_speed_fraction": [0.3, 0.5]}
@@ -600,6 +601,41 @@ def test_tangent_tracker_follows_the_path_direction_by_hand():
     expect = last["speed"][rows, k, None] * (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
     expect += 2.0 * (p0 - (pos + vel * ec.lag_s))
     np.testing.assert_allclose(last["v_ref"], expect, rtol=1e-9, atol=1e-12)
+
+
+def test_yaw_within_moves_a_lead_to_the_range_by_hand():
+    """A 90 deg lead held at 60; -3 rad from a base of 3 rad leads by 2 pi - 6 (wrapped), within: kept; -143 deg held
+    at -60; a lead across +-pi held at the nearer side (base 3, psi 3 - 2 pi + 1.5 leads by 1.5 rad)."""
+    got = yaw_within(np.array([math.pi / 2, -3.0, 0.1 - 2.5, 4.5 - 2 * math.pi]), np.array([0.0, 3.0, 0.1, 3.0]), 60.0)
+    np.testing.assert_allclose(got, [math.pi / 3, -3.0, 0.1 - math.pi / 3, 3.0 + math.pi / 3], rtol=1e-12)
+
+
+def test_yaw_in_action_holds_the_labels_yaw_in_range_and_keeps_the_thrust_vector():
+    """With ``yaw_in_action`` the command's yaw leads the yaw base by at most ``action.yaw_range_deg`` and roll and
+    pitch are solved at that yaw: the thrust vector f_n R(phi, theta, psi) e3 (built here from the Euler angles) is
+    the one the free command flies. Flights whose chord leads by less keep the free command to the bit."""
+    from envs.vehicle.rotations import euler_zyx_to_rot
+
+    env = NavigationEnv(num_envs=4, **SMALL, **{"episode.target_speeds": [5.0], "episode.speed_range": []})
+    env.reset(seed=3)
+    to_goal = np.arctan2(*(env.goal_buf - env.local_pos)[:, 1::-1].T)
+    env.reset(seed=3, options={"yaw": to_goal + np.array([0.0, 0.6, 2.0, -2.6])})  # leads of 0, 34, 115, 149 deg
+    ec = {"tracker": "tangent", "commit_dist": 0.0}
+    free = PlannerController(BaselineConfig(expert=ExpertConfig(**ec))).commands(env)
+    held = PlannerController(BaselineConfig(expert=ExpertConfig(yaw_in_action=True, **ec))).commands(env)
+    lead = (free[:, 3] - env.yaw_bases + math.pi) % (2 * math.pi) - math.pi
+    far = np.abs(lead) > math.radians(env.cfg.action.yaw_range_deg)
+    assert far.tolist() == [False, False, True, True]
+    np.testing.assert_array_equal(held[~far], free[~far])
+    np.testing.assert_allclose(held[far, 3], env.yaw_bases[far] + np.sign(lead[far]) * math.pi / 3, atol=1e-12)
+    assert np.abs(held[far, 1:3] - free[far, 1:3]).max() > 0.05  # the attitude is another one ...
+
+    def thrust(c):
+        return c[:, 0, None] * euler_zyx_to_rot(c[:, 1], c[:, 2], c[:, 3])[:, :, 2]
+
+    np.testing.assert_allclose(thrust(held), thrust(free), atol=1e-9)  # ... with the same thrust vector
+    act = env.command_to_action(held)
+    assert np.abs(act[:, 3]).max() <= 1.0 + 1e-12 and np.abs(env.command_to_action(free)[far, 3]).min() > 1.0
 
 
 def test_visible_samples_by_hand():

@@ -84,6 +84,10 @@ class RslRlVecEnv(VecEnv):
         expert: Optional expert ``expert(env) -> (N, 4)`` normalised actions, evaluated once on every new
             observation (after resets too) and returned as the ``expert`` group. It may remember the last call (the
             planner's route hysteresis) but must not assume a step between two calls.
+        expert_flown_share: DAgger's mixing share (Ross et al. 2011's beta): at every episode start each env is
+            drawn, with this probability, to fly the episode on the expert's labels instead of the actions it is
+            given (the student's); the ``expert`` group labels every state either way. 0 (default): the student
+            flies always.
     """
 
     def __init__(
@@ -94,7 +98,12 @@ class RslRlVecEnv(VecEnv):
         command_filter: CommandFilter | None = None,
         filter_penalty: float = 0.0,
         view_penalty: float = 0.0,
+        expert_flown_share: float = 0.0,
     ) -> None:  # noqa: D107
+        if not (np.isfinite(expert_flown_share) and 0.0 <= expert_flown_share <= 1.0):
+            raise ValueError(f"expert_flown_share must be in [0, 1], got {expert_flown_share}")
+        if expert_flown_share and expert is None:
+            raise ValueError(f"expert_flown_share {expert_flown_share} needs an expert")
         if not (np.isfinite(filter_penalty) and filter_penalty >= 0):
             raise ValueError(f"filter_penalty must be a finite number >= 0, got {filter_penalty}")
         if filter_penalty and command_filter is None:
@@ -110,6 +119,10 @@ class RslRlVecEnv(VecEnv):
         self.device = torch.device(device)
         self.num_envs = env.num_envs
         self.num_actions = 4
+        self.expert_flown_share = float(expert_flown_share)
+        self._share_rng = np.random.default_rng([env.cfg.seed, 0xBE7A])  # its own stream: the env's draws unchanged
+        self.expert_flown = np.zeros(env.num_envs, dtype=bool)  # envs whose episode flies the expert's labels
+        self._draw_expert_flown(np.arange(env.num_envs))
         obs, info = env.reset(seed=env.cfg.seed)
         self._obs = self._to_tensordict(obs, info)
 
@@ -132,6 +145,10 @@ class RslRlVecEnv(VecEnv):
         self.env.episode_length_buf[:] = np.minimum(
             value.detach().cpu().numpy().astype(np.int64), self.env.max_episode_length_buf - 1
         )
+
+    def _draw_expert_flown(self, ids: np.ndarray) -> None:
+        if self.expert_flown_share:
+            self.expert_flown[ids] = self._share_rng.random(len(ids)) < self.expert_flown_share
 
     def _to_tensordict(self, obs: dict, info: dict) -> TensorDict:
         data = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
@@ -165,6 +182,7 @@ class RslRlVecEnv(VecEnv):
         self.env.level_buf[:] = lv
         if self.command_filter is not None:
             self.command_filter.reset(np.arange(self.num_envs))
+        self._draw_expert_flown(np.arange(self.num_envs))
         obs, info = self.env.reset()
         self._obs = self._to_tensordict(obs, info)
 
@@ -175,6 +193,8 @@ class RslRlVecEnv(VecEnv):
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         """Step with actions (N, 4); returns observations, rewards (N,), dones (N,) and extras."""
         act = actions.detach().cpu().numpy().astype(np.float64)
+        if self.expert_flown.any():  # DAgger's mixing: these envs fly the label of the current observation
+            act[self.expert_flown] = self._obs["expert"].cpu().numpy()[self.expert_flown]
         commands = active = correction = None
         if self.command_filter is not None:
             commands, active, correction = self.command_filter(self.env, act)
@@ -191,6 +211,9 @@ class RslRlVecEnv(VecEnv):
             self.command_filter.reset(np.flatnonzero(term | trunc))
         self._obs = self._to_tensordict(obs, info)
         log = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in info["log"].items()}
+        if self.expert_flown_share:
+            log["dagger/expert_flown"] = torch.as_tensor(float(np.mean(self.expert_flown)), dtype=torch.float32)
+            self._draw_expert_flown(np.flatnonzero(term | trunc))
         if active is not None:
             log["shield/active"] = torch.as_tensor(float(np.mean(active)), dtype=torch.float32)
             log["shield/correction"] = torch.as_tensor(float(np.mean(correction)), dtype=torch.float32)

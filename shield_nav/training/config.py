@@ -237,6 +237,11 @@ class ExpertConfig:
     params: BaselineConfig = field(default_factory=_default_expert_params)
     """The expert's parameters (:class:`shield_nav.baselines.BaselineConfig`; ``oracle.episode_goal`` defaults to
     true here: descend the field of the episode's goal point)."""
+    flown_share: float = 0.0
+    """DAgger's mixing share (Ross et al. 2011's beta), in [0, 1]: each env is drawn at every episode start, with
+    this probability, to fly the episode on the expert's labels instead of the student's actions, which keeps the
+    visited states near the expert's while the student is far from it; every state is labelled and learned either
+    way. 0 (default): the student flies every episode (plain DAgger, as the shipped students were trained)."""
 
 
 @dataclass
@@ -449,6 +454,11 @@ class TrainConfig:
                     f"must be [expert] with runner.expert.kind {r.expert.kind!r}")  # fmt: skip
             require(not distill or r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
                     "must be 'shield_nav.models:ExpertTeacher' with a scripted expert")  # fmt: skip
+        share = r.expert.flown_share
+        require(isinstance(share, (int, float)) and math.isfinite(share) and 0 <= share <= 1,
+                f"{prefix}runner.expert.flown_share", f"must be in [0, 1], got {share!r}")  # fmt: skip
+        require(share == 0 or (distill and r.expert.kind), f"{prefix}runner.expert.flown_share",
+                "only with runner.class_name DistillationRunner and a scripted runner.expert.kind")  # fmt: skip
         uses_teacher_obs = any("teacher" in groups for groups in r.obs_groups.values())
         require(not uses_teacher_obs or self.env.local_map.enabled, f"{prefix}env.local_map.enabled",
                 "must be true when an obs group reads the 'teacher' observation")  # fmt: skip

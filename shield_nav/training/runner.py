@@ -150,7 +150,8 @@ def _single_env(cfg: TrainConfig) -> VecEnv:
 
         command_filter = ShieldInLoop(cfg.shield, cfg.env.camera)
     return RslRlVecEnv(NavigationEnv(config=cfg.env), device=cfg.device, expert=expert, command_filter=command_filter,
-                       filter_penalty=cfg.shield_penalty, view_penalty=cfg.view_penalty)  # fmt: skip
+                       filter_penalty=cfg.shield_penalty, view_penalty=cfg.view_penalty,
+                       expert_flown_share=cfg.runner.expert.flown_share)  # fmt: skip
 
 
 def _randomize_episode_lengths(env: VecEnv) -> None:

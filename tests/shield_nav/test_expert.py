@@ -311,6 +311,35 @@ def test_expert_group_follows_resets_and_steps():
         np.testing.assert_allclose(obs["expert"].numpy(), expert(vec.env), atol=1e-6)
 
 
+def test_expert_flown_share_flies_the_drawn_episodes_on_the_labels():
+    """DAgger's mixing: an env drawn for the expert flies its labels whatever action it is given, the others fly the
+    given action; checked step for step against a twin env flown by hand, and each ended episode is drawn anew from
+    the adapter's own stream (the env's draws unchanged)."""
+    expert = OracleExpert()
+    vec = RslRlVecEnv(NavigationEnv(num_envs=6, **SMALL), expert=expert, expert_flown_share=0.5)
+    twin = NavigationEnv(num_envs=6, **SMALL)
+    twin.reset(seed=twin.cfg.seed)
+    rng = np.random.default_rng([twin.cfg.seed, 0xBE7A])
+    drawn = rng.random(6) < 0.5
+    assert 0 < drawn.sum() < 6  # this seed draws both kinds
+    np.testing.assert_array_equal(vec.expert_flown, drawn)
+    given = np.tile([[0.2, 0.1, -0.1, 0.0]], (6, 1))
+    for _ in range(8):
+        act = np.where(drawn[:, None], expert(twin), given)
+        twin.step(act)
+        vec.step(torch.as_tensor(given, dtype=torch.float32))
+        np.testing.assert_allclose(vec.env.local_pos, twin.local_pos, atol=1e-9)
+    assert np.abs(vec.env.local_pos[drawn] - vec.env.local_pos[~drawn].mean(0)).min() > 1e-3
+    vec.episode_length_buf = torch.as_tensor(vec.env.max_episode_length_buf - 1)  # every episode times out next step
+    _, _, dones, _ = vec.step(torch.as_tensor(given, dtype=torch.float32))
+    assert dones.all()
+    np.testing.assert_array_equal(vec.expert_flown, rng.random(6) < 0.5)
+    with pytest.raises(ValueError, match="expert_flown_share must be in"):
+        RslRlVecEnv(NavigationEnv(num_envs=2, **SMALL), expert=expert, expert_flown_share=1.5)
+    with pytest.raises(ValueError, match="needs an expert"):
+        RslRlVecEnv(NavigationEnv(num_envs=2, **SMALL), expert_flown_share=0.5)
+
+
 def test_expert_teacher_passes_the_group_through_and_checks_shapes():
     obs = TensorDict({"expert": torch.randn(3, 4), "state": torch.randn(3, 21)}, batch_size=[3])
     model = ExpertTeacher(obs, {"teacher": ["expert"]}, "teacher", 4)
@@ -351,6 +380,11 @@ def test_expert_config_errors_name_the_key():
     quick = os.path.join(REPO, "configs", "train", "quick.yaml")
     with pytest.raises(ConfigError, match="only with runner.class_name DistillationRunner"):
         load_train_config(quick, overrides=["runner.expert.kind=oracle"])
+    with pytest.raises(ConfigError, match=r"runner.expert.flown_share.*must be in \[0, 1\], got 1.5"):
+        load_train_config(path, overrides=["runner.expert.flown_share=1.5"])
+    with pytest.raises(ConfigError, match=r"runner.expert.flown_share.*only with runner.class_name Distillation"):
+        load_train_config(quick, overrides=["runner.expert.flown_share=0.5"])
+    assert load_train_config(path, overrides=["runner.expert.flown_share=0.5"]).runner.expert.flown_share == 0.5
 
 
 def run_train(*args):

@@ -51,6 +51,7 @@ import numpy as np
 
 from envs.config import require
 from envs.fields.lookup import trilinear_batch, trilinear_point
+from envs.vehicle.rotations import wrap_pi
 from shield_nav.escape import CameraMap, EscapeConfig
 from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
 from shield_nav.preview import PreviewGains, timed_reference
@@ -492,7 +493,7 @@ def yaw_within(psi: np.ndarray, base: np.ndarray, range_deg: float) -> np.ndarra
     """
     r = math.radians(range_deg)
     psi = np.asarray(psi, dtype=np.float64)
-    lead = (psi - base + np.pi) % (2 * np.pi) - np.pi
+    lead = wrap_pi(psi - base)
     return np.where(np.abs(lead) <= r, psi, base + np.clip(lead, -r, r))
 
 

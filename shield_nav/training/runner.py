@@ -232,6 +232,50 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     return ckpt.get("infos") or {}
 
 
+def expert_changes(before: dict | None, after: dict) -> list[str]:
+    """The settings of ``runner.expert`` (kind and params) in which ``after`` differs from ``before``, as lines.
+
+    ``before`` is the ``runner.expert`` section of the config an initial policy was trained with (its checkpoint's
+    ``infos["config"]``), ``after`` this run's. Only keys both configs hold are compared: a key added to the code
+    after the initial policy was trained is not in its config (new keys default to the behaviour before them).
+    DAgger's mixing share is not a teacher setting and is left out. An initial policy trained without a scripted
+    expert gives no lines. Each line reads ``params.expert.tracker: 'tangent' -> 'mppi'``.
+    """
+    if not before or not before.get("kind"):
+        return []
+
+    def flat(section: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(section, dict):
+            return {prefix[:-1]: section}
+        out: dict[str, Any] = {}
+        for key, value in section.items():
+            out.update(flat(value, f"{prefix}{key}."))
+        return out
+
+    old, new = (
+        flat({k: v for k, v in before.items() if k != "flown_share"}),
+        flat({k: v for k, v in after.items() if k != "flown_share"}),
+    )
+    return [f"{key}: {old[key]!r} -> {new[key]!r}" for key in sorted(old.keys() & new.keys()) if old[key] != new[key]]
+
+
+def _note_expert_switch(cfg: TrainConfig, path: str, infos: dict, key: str) -> None:
+    """Print which expert settings differ from the ones the initial policy at ``path`` was trained with.
+
+    A student distilled from one tracker and fine-tuned on another's labels can come apart (docs/training.md,
+    "Expert DAgger"), so a run that switches says so before it trains. Information only: recipes switch on purpose
+    (the oracle student's first expert cycle).
+    """
+    if not cfg.runner.expert.kind:
+        return
+    before = ((infos.get("config") or {}).get("runner") or {}).get("expert")
+    changes = expert_changes(before, to_dict(cfg.runner.expert))
+    if changes:
+        shown = "; ".join(changes[:8]) + (f"; and {len(changes) - 8} more" if len(changes) > 8 else "")
+        print(f"[train] note: runner.expert differs from the expert the policy of '{key}' ({path}) was trained "
+              f"with: {shown}", flush=True)  # fmt: skip
+
+
 def _widened(weights: dict, model: Any, what: str) -> dict:
     """``weights`` for ``model``, widened where the model is wider.
 
@@ -439,6 +483,7 @@ def train(
     if cfg.runner.class_name == "DistillationRunner" and resume is None and cfg.runner.student_init:
         infos = _init_student(runner, cfg.runner.student_init, device)
         print(f"[train] student initialised from {cfg.runner.student_init}", flush=True)
+        _note_expert_switch(cfg, cfg.runner.student_init, infos, "runner.student_init")
         _restore_levels(env, infos.get("curriculum_levels"), cfg.runner.student_init)
     if cfg.runner.actor_init and resume is None:
         ckpt = torch.load(cfg.runner.actor_init, map_location=device, weights_only=False)
@@ -447,6 +492,7 @@ def train(
             raise ConfigError(f"config key 'runner.actor_init': {cfg.runner.actor_init!r} holds no actor or student")
         runner.alg._raw_actor.load_state_dict(_widened(weights, runner.alg._raw_actor, "actor"))
         print(f"[train] actor initialised from {cfg.runner.actor_init}", flush=True)
+        _note_expert_switch(cfg, cfg.runner.actor_init, ckpt.get("infos") or {}, "runner.actor_init")
         _restore_levels(env, (ckpt.get("infos") or {}).get("curriculum_levels"), cfg.runner.actor_init)
     if resume is not None:
         # DAgger from a scripted expert saved no teacher weights (an empty dict): load everything else. A PPO run

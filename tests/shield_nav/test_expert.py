@@ -438,3 +438,29 @@ def test_fine_tune_inputs_fail_fast(tmp_path):
                     "--set", "runner.actor_init=checkpoints/dijkstra_cbf/model.pt")  # fmt: skip
     assert res.returncode == 2 and "runner.actor_init" in res.stderr and "OnPolicyRunner" in res.stderr
     assert not os.path.exists(root)  # nothing was started
+
+
+def test_a_run_notes_the_expert_settings_its_initial_policy_did_not_learn_from(capsys):
+    """A fine-tune that switches the expert's tracker says so: the shipped student's stored config (the `tangent`
+    tracker) against its own recipe gives no line, against the recipe with the `mppi` tracker exactly that change."""
+    from envs.config import to_dict
+    from shield_nav.training.runner import _note_expert_switch, expert_changes
+
+    before = {"kind": "planner", "flown_share": 0.0, "params": {"expert": {"tracker": "tangent", "max_tilt_deg": 48.0}}}
+    after = {"kind": "planner", "flown_share": 0.5, "params": {"expert": {"tracker": "mppi", "max_tilt_deg": 48.0},
+                                                             "oracle": {"field_radius": 0.5}}}  # fmt: skip
+    assert expert_changes(before, after) == ["params.expert.tracker: 'tangent' -> 'mppi'"]  # mixing, new keys: none
+    assert expert_changes({**before, "kind": "oracle"}, before) == ["kind: 'oracle' -> 'planner'"]
+    assert expert_changes({"kind": "", "params": {}}, after) == [] and expert_changes(None, after) == []
+
+    path = "checkpoints/student/model.pt"
+    infos = torch.load(path, map_location="cpu", weights_only=False)["infos"]
+    same = load_train_config("configs/train/recipe_student.yaml")
+    assert expert_changes(infos["config"]["runner"]["expert"], to_dict(same.runner.expert)) == []
+    _note_expert_switch(same, path, infos, "runner.student_init")
+    assert capsys.readouterr().out == ""
+    switched = load_train_config("configs/train/recipe_student.yaml", ["runner.expert.params.expert.tracker=mppi"])
+    _note_expert_switch(switched, path, infos, "runner.student_init")
+    out = capsys.readouterr().out
+    assert "runner.student_init" in out and path in out and out.count("->") == 1
+    assert "params.expert.tracker: 'tangent' -> 'mppi'" in out

@@ -52,6 +52,7 @@ from shield_nav.evaluation.config import (
     load_registry,
     parse_scenes,
     resolve_rows,
+    row_escape_config,
 )
 from shield_nav.evaluation.metrics import (
     aggregate,
@@ -142,6 +143,7 @@ __all__ = [
     "prepare",
     "record_videos",
     "resolve_rows",
+    "row_escape_config",
     "run_unit",
     "sample_trial",
     "scene_seed",

@@ -49,6 +49,9 @@ class RowConfig:
     escape: bool = False
     """Put the stall escape (:mod:`shield_nav.escape`, the run's ``escape`` section) between the goal and the
     policy; ``controller: policy`` only."""
+    escape_overrides: dict[str, Any] = field(default_factory=dict)
+    """This row's stall-escape settings over the run's ``escape`` section (keys of ``EscapeConfig``), e.g. the
+    handover of the ``full`` row beside ``full_escape``'s sideways form in one table; needs ``escape: true``."""
 
 
 def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> ShieldConfig:
@@ -60,6 +63,20 @@ def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> Shi
     out = dataclasses.replace(base, **row.shield_overrides)
     try:
         out.validate(f"rows.{name}.shield_overrides.")
+    except ConfigError as err:
+        raise EvalError(str(err)) from None
+    return out
+
+
+def row_escape_config(base: EscapeConfig, row: RowConfig, name: str = "") -> EscapeConfig:
+    """``base`` with ``row.escape_overrides`` applied and checked; an unknown key or bad value names the row."""
+    known = {f.name for f in dataclasses.fields(EscapeConfig)}
+    bad = sorted(set(row.escape_overrides) - known)
+    if bad:
+        raise EvalError(f"rows.{name}.escape_overrides: unknown key(s) {bad}; known: {sorted(known)}")
+    out = dataclasses.replace(base, **row.escape_overrides)
+    try:
+        out.validate(f"rows.{name}.escape_overrides.")
     except ConfigError as err:
         raise EvalError(str(err)) from None
     return out
@@ -245,7 +262,10 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
         if row.escape and row.controller != "policy":
             raise EvalError(f"configuration {name!r} has escape: true but controller {row.controller!r}; the stall "
                             f"escape steers a depth policy's goal input ('controller: policy')")  # fmt: skip
+        if row.escape_overrides and not row.escape:
+            raise EvalError(f"configuration {name!r} has escape_overrides but no stall escape ('escape: true')")
         row_shield_config(cfg.shield, row, name)  # raises on a bad key or value
+        row_escape_config(cfg.escape, row, name)
         out[name] = row
     return out
 

@@ -16,7 +16,14 @@ from envs.navigation.config import NavConfig
 from envs.scenes import FAMILIES, make_scene
 from shield_nav.baselines import Controller, make_baseline
 from shield_nav.escape import StallEscape
-from shield_nav.evaluation.config import EVAL_FORMAT_VERSION, EvalConfig, EvalError, RowConfig, row_shield_config
+from shield_nav.evaluation.config import (
+    EVAL_FORMAT_VERSION,
+    EvalConfig,
+    EvalError,
+    RowConfig,
+    row_escape_config,
+    row_shield_config,
+)
 from shield_nav.evaluation.metrics import aggregate, max_turns, trajectory_metrics
 from shield_nav.evaluation.policies import LoadedPolicy, LoadedTeacher, PolicyInfo, load_policy, load_teacher
 from shield_nav.shield import STATUS_FALLBACK, STATUS_RELAXED, HOCBFShield
@@ -173,7 +180,11 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         ctrl = make_baseline(row.controller, cfg.baselines)
         ctrl.reset(env)
     shield = HOCBFShield(row_shield_config(cfg.shield, row, spec.row_name), env.cfg.camera) if row.shield else None
-    escape = StallEscape(cfg.escape, n, env.cfg.vehicle.command_dt, env.cfg.camera) if row.escape else None
+    escape = (
+        StallEscape(row_escape_config(cfg.escape, row, spec.row_name), n, env.cfg.vehicle.command_dt, env.cfg.camera)
+        if row.escape
+        else None
+    )
     handover = None  # escape.kind 'handover': a stalled flight is flown by the camera-map planner from then on
     if escape is not None and escape.cfg.kind == "handover":
         handover = make_baseline("reactive_map", cfg.baselines)

@@ -293,6 +293,39 @@ def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
     for t, p in zip(handed, plain, strict=True):  # handed over at step 20 (0.2 s), flown by the planner to the end
         assert t["escape"] == {"escapes": 1, "escape_steps": t["steps"] - 20, "by_circling": 0}
         assert t["traj"][:3] == p["traj"][:3] and t["traj"][3] != p["traj"][3]
+    # The shipped row `full_handover` carries the handover in its own escape_overrides (kind, circling rule), over
+    # the run's sideways default: with the same window it flies the flights handed over above.
+    cfg = E.load_eval_config(None, [*base, "configurations=[full_handover]", "escape.window_s=0.2",
+                                    "escape.min_progress=1000.0"])  # fmt: skip
+    (spec,) = E.plan_units(E.prepare(cfg))
+    assert (
+        cfg.escape.kind == "sideways"
+        and E.row_escape_config(cfg.escape, E.resolve_rows(cfg)["full_handover"], "full_handover").kind == "handover"
+    )
+    row_handed = E.run_unit(spec)["trials"]
+    assert [t["traj"] for t in row_handed] == [t["traj"] for t in handed]
+    assert [t["escape"] for t in row_handed] == [t["escape"] for t in handed]
     with pytest.raises(E.EvalError, match="has escape: true but controller 'oracle'"):
         E.resolve_rows(E.load_eval_config(None, [*base, "configurations=[mine]", "rows.mine.controller=oracle",
                                                  "rows.mine.escape=true"]))  # fmt: skip
+
+
+def test_row_escape_overrides_are_checked_by_name_before_any_flight():
+    """A row's escape_overrides: an unknown key, a bad value and overrides without the escape each fail naming the
+    row and key; the run's own escape section is left as it was for the other rows."""
+    base = ["scenes.family=ablation", "scenes.indices=[0]", "speeds=[9.0]", "trials_per_scene=1", "plots=false"]
+    cfg = E.load_eval_config(None, [*base, "configurations=[full_escape,full_handover]"])
+    rows = E.resolve_rows(cfg)
+    assert E.row_escape_config(cfg.escape, rows["full_escape"], "full_escape") == cfg.escape
+    handover = E.row_escape_config(cfg.escape, rows["full_handover"], "full_handover")
+    assert (handover.kind, handover.circle_turns, handover.circle_window_s) == ("handover", 1.5, 10.0)
+    assert dataclasses.replace(handover, kind="sideways", circle_turns=0.0, circle_window_s=6.0) == cfg.escape
+    mine = ["configurations=[mine]", "rows.mine.policy=full", "rows.mine.shield=true"]
+    for extra, match in (
+        (["rows.mine.escape=true", "rows.mine.escape_overrides.window=3.0"],
+         r"rows\.mine\.escape_overrides: unknown key.*window"),
+        (["rows.mine.escape=true", "rows.mine.escape_overrides.kind=handoff"], r"rows\.mine\.escape_overrides\.kind"),
+        (["rows.mine.escape_overrides.kind=handover"], r"'mine' has escape_overrides but no stall escape"),
+    ):  # fmt: skip
+        with pytest.raises(E.EvalError, match=match):
+            E.resolve_rows(E.load_eval_config(None, [*base, *mine, *extra]))

@@ -18,6 +18,11 @@ It builds the policy's state vector and reads its action with the functions the 
 filters with the same :class:`~shield_nav.shield.HOCBFShield` as ``eval.py``'s shielded rows, so a flight flown
 through it is the evaluation's flight (tested trial for trial against ``eval.py``'s ``full`` row).
 
+With ``handover=True`` a stalled flight (no metre closer to its goal in 5 s, or 1.5 net turns of heading in 10 s) is
+flown from its stall on by the weight-free camera-map planner, behind the same shield: the ``full_handover`` row of
+``eval.py`` (docs/shield.md, "Stall escape"; tested step for step against that row too). It needs the flight
+volume (the operator's geofence) at ``reset``, and all vehicles start their flights together.
+
 ``python -m shield_nav.deploy [CHECKPOINT] [--family benchmark --scene 13 --speed 5]`` flies one simulated flight
 through the pilot alone (the simulator only supplies the sensor readings and flies the commands) and reports the
 outcome and what one control step costs, policy and shield apart.
@@ -28,6 +33,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -36,6 +42,8 @@ from envs.camera import normalize_depth
 from envs.config import load_config
 from envs.navigation import interface as I
 from envs.navigation.config import NavConfig
+from shield_nav.baselines import BaselineConfig, make_baseline
+from shield_nav.escape import EscapeConfig, StallEscape
 from shield_nav.evaluation.policies import LoadedPolicy, load_policy
 from shield_nav.shield import HOCBFShield, ShieldConfig, ShieldOutput
 
@@ -55,6 +63,37 @@ class PilotStep:
     """The shield's full output (activity, correction, QP status, timing); None without a shield."""
     policy_us: float
     """Wall time of the policy network for the batch [us]."""
+    handed: np.ndarray | None = None
+    """(N,) bool: the vehicles whose command came from the handover planner this step; None without a handover."""
+
+
+def handover_config() -> EscapeConfig:
+    """The stall rules of ``eval.py``'s ``full_handover`` row (its ``escape_overrides`` in configs/eval/rows.yaml)."""
+    from shield_nav.evaluation.config import load_registry
+
+    rows, _ = load_registry()
+    return dataclasses.replace(EscapeConfig(), **rows["full_handover"].escape_overrides)
+
+
+class _PilotView:
+    """The quantities of a navigation env that the stall rules and the camera-map planner read, from the pilot's inputs.
+
+    One flight volume for all vehicles, no finished flights (the pilot flies until its caller stops it).
+    """
+
+    def __init__(self, n: int, camera: Any, command_dt: float, gravity: float, volume: tuple) -> None:  # noqa: D107
+        lo, hi = (np.asarray(v, dtype=np.float64).reshape(3) for v in volume)
+        self.num_envs = n
+        self.cfg = SimpleNamespace(camera=camera, render_depth=True,
+                                   vehicle=SimpleNamespace(command_dt=command_dt, gravity=gravity))  # fmt: skip
+        self.scenes = [SimpleNamespace(bounds_lo=lo, bounds_hi=hi)]
+        self.scene_id_buf = np.zeros(n, dtype=np.int64)
+        self.frozen_buf = np.zeros(n, dtype=bool)
+        self.vehicles = SimpleNamespace(vel_w=np.zeros((n, 3)), R_wb=np.tile(np.eye(3), (n, 1, 1)))
+        self.local_pos = np.zeros((n, 3))
+        self.goal_buf = np.zeros((n, 3))
+        self.target_speed_buf = np.zeros(n)
+        self.sensor_depth_buf = np.zeros((n, 1, 1, 1), dtype=np.float32)
 
 
 class ShieldedPilot:
@@ -67,16 +106,28 @@ class ShieldedPilot:
         shield: The shield's settings; True (default): :class:`ShieldConfig`'s defaults, the shield of ``eval.py``'s
             Full row; False: the policy flies alone.
         num_vehicles: N.
+        handover: Stall rules after which the camera-map planner flies a vehicle (an ``EscapeConfig`` of
+            ``kind: handover``); True: those of ``eval.py``'s ``full_handover`` row; False (default): none.
 
     Raises:
-        ValueError: the policy reads other inputs, or the shield asks to choose among hypotheses (``hypotheses``
-            other than ``top``, which needs the policy's candidates; ``eval.py`` flies that).
+        ValueError: the policy reads other inputs, the shield asks to choose among hypotheses (``hypotheses``
+            other than ``top``, which needs the policy's candidates; ``eval.py`` flies that), or ``handover`` is an
+            escape of another kind.
     """
 
-    def __init__(self, policy: LoadedPolicy, shield: ShieldConfig | bool = True, num_vehicles: int = 1) -> None:  # noqa: D107
+    def __init__(self, policy: LoadedPolicy, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
+                 handover: EscapeConfig | bool = False) -> None:  # noqa: D107  # fmt: skip
         info = policy.info
         if not isinstance(shield, (bool, ShieldConfig)):
             raise TypeError(f"shield: {shield!r}; give a ShieldConfig, True (the default shield) or False (none)")
+        if not isinstance(handover, (bool, EscapeConfig)):
+            raise TypeError(f"handover: {handover!r}; give an EscapeConfig, True (full_handover's rules) or False")
+        handover = handover_config() if handover is True else (None if handover is False else handover)
+        if handover is not None:
+            handover.validate("handover.")
+            if handover.kind != "handover":
+                raise ValueError(f"handover.kind: {handover.kind!r}; the pilot hands flights over ('handover'), "
+                                 "eval.py flies the other escape kinds")  # fmt: skip
         shield = ShieldConfig() if shield is True else (None if shield is False else shield)
         if tuple(info.state_groups) != ("state",):
             raise ValueError(f"policy {info.path!r} reads the observation groups {list(info.state_groups)}; the "
@@ -100,22 +151,38 @@ class ShieldedPilot:
         self.target_speed = np.full(n, np.nan)
         self.prev_action = np.zeros((n, 4))
         self.h = policy.initial_state(n)
+        self.command_dt = float(nav.vehicle.command_dt)
+        self.handover = handover
+        self._view: _PilotView | None = None  # with a handover: the env-like view its rules and planner read
+        self._escape: StallEscape | None = None
+        self._planner: Any = None
+        self._t = 0
 
     @classmethod
     def load(cls, path: str, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
-             network: str = "export") -> ShieldedPilot:  # fmt: skip
+             network: str = "export", handover: EscapeConfig | bool = False) -> ShieldedPilot:  # fmt: skip
         """A pilot for the policy at ``path``, read by :func:`load_policy`.
 
         ``path``: a ``checkpoints/<name>`` folder, a run's ``exported/policy.onnx``, or with ``network="fixed_order"``
         a training checkpoint.
         """
-        return cls(load_policy(path, "pilot", network), shield, num_vehicles)
+        return cls(load_policy(path, "pilot", network), shield, num_vehicles, handover)
 
-    def reset(self, goal: Any, target_speed: Any, ids: Any = None) -> None:
+    def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None) -> None:
         """Start flights for vehicles ``ids`` (all if None): their goal (M, 3) [m] and target speed (M,) or one [m/s].
 
         Zeroes their recurrent state and previous action and clears their shield memory, as a new episode does.
+        With a handover: ``volume`` = (lo, hi), the flight volume's corners (3,) [m] in the goal's frame (the
+        planner keeps inside it and maps within it), and every vehicle starts (``ids`` None); its stall clocks,
+        maps and planner start afresh.
         """
+        if self.handover is not None:
+            if ids is not None and len(np.unique(np.atleast_1d(ids))) != self.num_vehicles:
+                raise ValueError("reset: with a handover every vehicle starts its flight together (ids=None)")
+            if volume is None or np.shape(volume) != (2, 3) or not np.isfinite(np.asarray(volume, float)).all():
+                raise ValueError(
+                    f"reset: with a handover give volume=(lo, hi), two finite (3,) corners; got {volume!r}"
+                )
         sel = np.arange(self.num_vehicles) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
         goal = np.broadcast_to(np.asarray(goal, dtype=np.float64), (len(sel), 3))
         speed = np.broadcast_to(np.asarray(target_speed, dtype=np.float64), (len(sel),))
@@ -127,6 +194,12 @@ class ShieldedPilot:
         self.h[:, sel] = 0.0
         if self.shield is not None:
             self.shield.reset(sel)
+        if self.handover is not None:
+            n = self.num_vehicles
+            self._view = _PilotView(n, self.camera, self.command_dt, self.gravity, volume)
+            self._escape = StallEscape(self.handover, n, self.command_dt, self.camera)
+            self._planner = make_baseline("reactive_map", BaselineConfig())
+            self._t = 0
 
     def step(self, depth_m: np.ndarray, pos: np.ndarray, vel_w: np.ndarray, R_wb: np.ndarray) -> PilotStep:  # noqa: N803
         """One control step for all N vehicles.
@@ -164,33 +237,60 @@ class ShieldedPilot:
         act = np.clip(act, -1.0, 1.0)
         base = I.yaw_bases(self.action_cfg, R_wb, vel_w)
         cmd = I.action_to_command(act, base, self.action_cfg, self.gravity)
+        handed = self._hand_over(cmd, state, depth_m, pos, vel_w, R_wb) if self.handover is not None else None
         out = None
         if self.shield is not None:
             out = self.shield.filter(cmd, pos, vel_w, depth=depth_m, R_wb=R_wb, ids=np.arange(n))
             cmd = out.command
+        if self.shield is not None or handed is not None:
             self.prev_action = np.clip(I.command_to_action(cmd, base, self.action_cfg, self.gravity), -1.0, 1.0)
         else:
             self.prev_action = act
-        return PilotStep(cmd, act, out, policy_us)
+        return PilotStep(cmd, act, out, policy_us, handed)
+
+    def _hand_over(self, cmd: np.ndarray, state: np.ndarray, depth_m: np.ndarray, pos: np.ndarray,
+                   vel_w: np.ndarray, R_wb: np.ndarray) -> np.ndarray:  # noqa: N803  # fmt: skip
+        """Replace the commands of the stalled vehicles by the camera-map planner's, in place; return which.
+
+        The order of ``eval.py``'s rollout: the stall rules read this step's state, then the planner, which maps
+        every vehicle's image at every call, plans the handed ones.
+        """
+        view, escape = self._view, self._escape
+        assert view is not None and escape is not None  # reset() made them
+        lo, hi = view.scenes[0].bounds_lo, view.scenes[0].bounds_hi
+        escape.apply(state, pos, self.goal, depth_m, self._t, None, (lo[:2], hi[:2]), R_wb, float(lo[2]))
+        view.local_pos, view.goal_buf, view.target_speed_buf = pos, self.goal, self.target_speed
+        view.vehicles.vel_w, view.vehicles.R_wb, view.sensor_depth_buf = vel_w, R_wb, depth_m
+        if self._t == 0:
+            self._planner.reset(view)
+        handed = escape.guided.copy()
+        planned = self._planner.commands(view, among=handed)
+        cmd[handed] = planned[handed]
+        self._t += 1
+        return handed
 
 
 def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw: float, seed: int = 0) -> dict:
     """Fly one flight of a one-vehicle ``env`` (a ``NavigationEnv`` without autoreset) with ``pilot`` alone.
 
     The env only renders the sensor's image and flies the pilot's commands. Returns the outcome, the step count,
-    the mean speed, the shield's active share and the per-step costs [us]: the policy network, the shield, and the
-    whole :meth:`ShieldedPilot.step` (state, network, mapping, shield).
+    the mean speed, the shield's active share, the steps flown by the handover planner and the per-step costs [us]:
+    the policy network, the shield, and the whole :meth:`ShieldedPilot.step` (state, network, mapping, handover,
+    shield).
     """
     obs, _ = env.reset(seed=seed, options={"scene_ids": np.zeros(1, np.int64), "start": np.asarray([start]),
                                            "goal": np.asarray([goal]), "speed": np.full(1, speed),
                                            "yaw": np.full(1, yaw)})  # fmt: skip
-    pilot.reset(env.goal_buf, speed)
+    volume = (env.scenes[0].bounds_lo, env.scenes[0].bounds_hi) if pilot.handover is not None else None
+    pilot.reset(env.goal_buf, speed, volume=volume)
     steps, speeds, active, policy_us, shield_us, step_us, outcome = 0, [], 0, [], [], [], ""
+    handed_steps = 0
     while not outcome:
         t0 = time.perf_counter()
         out = pilot.step(env.sensor_depth_buf, env.local_pos, env.vehicles.vel_w, env.vehicles.R_wb)
         step_us.append((time.perf_counter() - t0) * 1e6)
         policy_us.append(out.policy_us)
+        handed_steps += int(out.handed is not None and out.handed[0])
         if out.shield is not None:
             active += int(out.shield.active[0])
             shield_us.append(float(out.shield.total_us[0]))
@@ -203,7 +303,7 @@ def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw
                 outcome = name
     return {"outcome": outcome, "steps": steps, "duration_s": steps * env.cfg.vehicle.command_dt,
             "mean_speed": float(np.mean(speeds)),
-            "shield_active": active / steps if shield_us else None,
+            "shield_active": active / steps if shield_us else None, "handed_steps": handed_steps,
             "policy_us": np.asarray(policy_us), "shield_us": np.asarray(shield_us),
             "step_us": np.asarray(step_us)}  # fmt: skip
 
@@ -250,6 +350,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--speed", type=float, default=5.0, help="target speed [m/s]")
     p.add_argument("--trial", type=int, default=0, help="which pinned trial of eval.py's seed 0 to fly")
     p.add_argument("--no-shield", action="store_true", help="fly the policy alone")
+    p.add_argument(
+        "--handover",
+        action="store_true",
+        help="hand a stalled flight to the camera-map planner (the rules of eval.py's full_handover row)",
+    )
     p.add_argument("--shield", action="append", default=[], metavar="KEY=VALUE",
                    help="a shield parameter other than its default, e.g. depth_filter=median_cross (repeatable; "
                         "docs/shield.md, 'Parameters')")  # fmt: skip
@@ -259,9 +364,11 @@ def main(argv: list[str] | None = None) -> int:
     shield: bool | ShieldConfig = not args.no_shield
     if args.shield:
         shield = load_config(ShieldConfig, overrides=args.shield)  # ConfigError names a bad key or value
-    pilot = ShieldedPilot.load(args.checkpoint, shield)
+    pilot = ShieldedPilot.load(args.checkpoint, shield, handover=args.handover)
     r = fly_trial(pilot, args.family, args.scene, args.speed, args.trial)
     shielded = "alone" if args.no_shield else "behind the shield"
+    if args.handover:
+        shielded += f", handed to the camera-map planner for {r['handed_steps'] * r['duration_s'] / r['steps']:.2f} s"
     print(f"{args.checkpoint} {shielded}, {args.family} scene {args.scene}, {args.speed:g} m/s, trial {args.trial}: "
           f"{r['outcome']} after {r['duration_s']:.2f} s at {r['mean_speed']:.2f} m/s on average")  # fmt: skip
     print(f"per control step, mean / p99: the whole step {_mean_p99(r['step_us'])} us, of which the policy "

@@ -14,6 +14,7 @@ from envs.navigation import NavigationEnv
 from envs.navigation import interface as I
 from envs.navigation.config import ActionConfig
 from shield_nav.deploy import ShieldedPilot, fly
+from shield_nav.escape import EscapeConfig
 from shield_nav.evaluation.rollout import flown_scene, nav_config, sample_trial, trial_seed
 from shield_nav.shield import ShieldConfig
 
@@ -97,6 +98,33 @@ def test_pilot_flies_evals_full_flight_step_for_step(eval_full_trial):
     env.close()
 
 
+def test_pilot_with_handover_flies_evals_handed_flight_step_for_step():
+    """With a handover the pilot flies eval.py's handed flight: a row handing every flight to the camera-map planner
+    at 0.2 s (1 km of progress asked), the same outcome, step count, handed steps, shield activity and end point; the
+    default rules are the `full_handover` row's."""
+    over = {"kind": "handover", "window_s": 0.2, "min_progress": 1000.0}
+    rows = [f"rows.mine.{k}={v}" for k, v in (("policy", "full"), ("shield", "true"), ("escape", "true"))]
+    rows += [f"rows.mine.escape_overrides.{k}={v}" for k, v in over.items()]
+    cfg = E.load_eval_config(None, ["name=deploy", "configurations=[mine]", *rows, "scenes.family=ablation",
+                                    "scenes.indices=[7]", "speeds=[9.0]", "trials_per_scene=1", "plots=false",
+                                    "network=export", "env_overrides=[episode.timeout_factor=1.5]"])  # fmt: skip
+    (spec,) = E.plan_units(E.prepare(cfg))
+    rec = E.run_unit(spec)["trials"][0]
+    assert rec["escape"] == {"escapes": 1, "escape_steps": rec["steps"] - 20, "by_circling": 0}
+    env = NavigationEnv(config=nav_config(cfg, spec.family, spec.index, spec.speed, 1, spec.policy_env))
+    seed = trial_seed(cfg.seed, spec.family, spec.index, spec.speed, 0)
+    trial = sample_trial(flown_scene(cfg, spec.family, spec.index), env.field_stack, 0, seed,
+                         env.cfg.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
+    pilot = ShieldedPilot.load(FULL, handover=EscapeConfig(**over))
+    r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31))
+    assert (r["outcome"], r["steps"], r["handed_steps"]) == (rec["outcome"], rec["steps"], rec["steps"] - 20)
+    assert round(r["shield_active"] * r["steps"]) == rec["shield"]["active_steps"]
+    np.testing.assert_array_equal(np.round(env.local_pos[0], 3), rec["traj"][-1][:3])
+    env.close()
+    rules = ShieldedPilot.load(FULL, handover=True).handover
+    assert (rules.kind, rules.window_s, rules.circle_turns, rules.circle_window_s) == ("handover", 5.0, 1.5, 10.0)
+
+
 def test_pilot_refuses_bad_input():
     pilot = ShieldedPilot.load(FULL, num_vehicles=2)
     depth, pos, vel, R = np.full((2, 1, 60, 100), 5.0), np.ones((2, 3)), np.zeros((2, 3)), np.repeat(_yaw(0), 2, 0)
@@ -117,6 +145,18 @@ def test_pilot_refuses_bad_input():
         ShieldedPilot(pilot.policy, ShieldConfig(hypotheses="first_clean"))
     with pytest.raises(TypeError, match="shield"):
         ShieldedPilot(pilot.policy, {"r_safe": 0.3})
+    handing = ShieldedPilot(pilot.policy, num_vehicles=2, handover=True)
+    with pytest.raises(ValueError, match=r"volume=\(lo, hi\)"):
+        handing.reset([[60.0, 0.0, 1.5]], 5.0)
+    with pytest.raises(ValueError, match="every vehicle starts"):
+        handing.reset([[60.0, 0.0, 1.5]], 5.0, ids=[1], volume=([0, -16, 0], [64, 16, 4]))
+    handing.reset([[60.0, 0.0, 1.5]], 5.0, volume=([0.0, -16.0, 0.0], [64.0, 16.0, 4.0]))
+    out = handing.step(depth, pos, vel, R)
+    assert out.handed.tolist() == [False, False] and np.isfinite(out.command).all()
+    with pytest.raises(ValueError, match=r"handover\.kind: 'map'"):
+        ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="map"))
+    with pytest.raises(ConfigError, match=r"handover\.window_s"):
+        ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="handover", window_s=0.0))
 
 
 def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
@@ -126,6 +166,18 @@ def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
     assert out.returncode == 0, out.stderr
     assert f"{rec['outcome']} after {rec['steps'] / 100:.2f} s" in out.stdout
     assert "per control step, mean / p99: the whole step" in out.stdout and "and the shield" in out.stdout
+
+
+def test_deploy_cli_hands_over_with_full_handovers_rules(eval_full_trial, capsys):
+    """`--handover`: this trial never stalls (5 s without a metre of progress), so it flies as without and says
+    that the planner flew none of it."""
+    from shield_nav.deploy import main
+
+    _, _, rec = eval_full_trial
+    assert main([FULL, "--family", "ablation", "--scene", "7", "--speed", "9", "--handover"]) == 0
+    out = capsys.readouterr().out
+    assert f"handed to the camera-map planner for 0.00 s, ablation scene 7, 9 m/s, trial 0: {rec['outcome']} after " \
+           f"{rec['steps'] / 100:.2f} s" in out  # fmt: skip
 
 
 def test_deploy_cli_shield_settings_are_checked_before_flying():

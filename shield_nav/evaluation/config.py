@@ -54,32 +54,31 @@ class RowConfig:
     handover of the ``full`` row beside ``full_escape``'s sideways form in one table; needs ``escape: true``."""
 
 
-def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> ShieldConfig:
-    """``base`` with ``row.shield_overrides`` applied and checked; an unknown key or bad value names the row."""
-    known = {f.name for f in dataclasses.fields(ShieldConfig)}
-    bad = sorted(set(row.shield_overrides) - known)
+def _overridden(base: Any, overrides: dict[str, Any], key: str) -> Any:
+    """``base`` (a config dataclass with ``validate(prefix)``) with ``overrides`` applied and checked.
+
+    Errors name ``key`` (``rows.<name>.<field>``) and the unknown key or the bad value.
+    """
+    known = {f.name for f in dataclasses.fields(base)}
+    bad = sorted(set(overrides) - known)
     if bad:
-        raise EvalError(f"rows.{name}.shield_overrides: unknown key(s) {bad}; known: {sorted(known)}")
-    out = dataclasses.replace(base, **row.shield_overrides)
+        raise EvalError(f"{key}: unknown key(s) {bad}; known: {sorted(known)}")
+    out = dataclasses.replace(base, **overrides)
     try:
-        out.validate(f"rows.{name}.shield_overrides.")
+        out.validate(f"{key}.")
     except ConfigError as err:
         raise EvalError(str(err)) from None
     return out
+
+
+def row_shield_config(base: ShieldConfig, row: RowConfig, name: str = "") -> ShieldConfig:
+    """``base`` with ``row.shield_overrides`` applied and checked; an unknown key or bad value names the row."""
+    return _overridden(base, row.shield_overrides, f"rows.{name}.shield_overrides")
 
 
 def row_escape_config(base: EscapeConfig, row: RowConfig, name: str = "") -> EscapeConfig:
     """``base`` with ``row.escape_overrides`` applied and checked; an unknown key or bad value names the row."""
-    known = {f.name for f in dataclasses.fields(EscapeConfig)}
-    bad = sorted(set(row.escape_overrides) - known)
-    if bad:
-        raise EvalError(f"rows.{name}.escape_overrides: unknown key(s) {bad}; known: {sorted(known)}")
-    out = dataclasses.replace(base, **row.escape_overrides)
-    try:
-        out.validate(f"rows.{name}.escape_overrides.")
-    except ConfigError as err:
-        raise EvalError(str(err)) from None
-    return out
+    return _overridden(base, row.escape_overrides, f"rows.{name}.escape_overrides")
 
 
 POLICY_CONTROLLERS = ("policy", "teacher")

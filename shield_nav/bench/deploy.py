@@ -6,6 +6,8 @@ the commands) and times every :meth:`~shield_nav.deploy.ShieldedPilot.step`: the
 action mapping, shield), the network and the shield alone. Reported per flight and over all of them: mean, p50,
 p99 and max [us], the share of steps with the shield acting, and the share of steps over the 10 ms control period.
 Default flights: a geometric benchmark scene at 3 m/s, a Perlin field at 5 m/s, a dense ablation scene at 9 m/s.
+``--handover`` adds the stall handover of ``eval.py``'s ``full_handover`` row (its camera map is kept from the first
+step of every flight; ``handed_steps`` says how many steps the planner flew).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ def main(argv: list[str]) -> dict:
     p = parser("deploy", __doc__.splitlines()[0])
     p.add_argument("--checkpoint", default="checkpoints/full", help="policy folder or file")
     p.add_argument("--flights", default=",".join(FLIGHTS), help="comma-separated family:scene:speed")
+    p.add_argument("--handover", action="store_true", help="with the stall handover (the full_handover row's rules)")
     args = p.parse_args(argv)
     flights = []
     for item in args.flights.split(","):
@@ -38,17 +41,18 @@ def main(argv: list[str]) -> dict:
         flights.append((family, scene, speed))
     from shield_nav.deploy import ShieldedPilot, fly_trial
 
-    pilot = ShieldedPilot.load(args.checkpoint)
+    pilot = ShieldedPilot.load(args.checkpoint, handover=args.handover)
     fly_trial(pilot, *flights[0])  # warm-up: numba kernels, onnxruntime session
     result: dict = {"benchmark": "deploy", "checkpoint": args.checkpoint, "runtime": pilot.policy.info.kind,
-                    "flights": []}  # fmt: skip
+                    "handover": bool(args.handover), "flights": []}  # fmt: skip
     period_us = 1e6 * pilot.shield.cfg.control_dt if pilot.shield is not None else 1e4
     all_step, all_policy, all_shield = [], [], []
     for family, scene, speed in flights:
         r = fly_trial(pilot, family, scene, speed)
         rec = {"flight": f"{family}:{scene}:{speed:g}", "outcome": r["outcome"], "steps": r["steps"],
                "shield_active": round(r["shield_active"], 4), "step_us": _stats(r["step_us"]),
-               "policy_us": _stats(r["policy_us"]), "shield_us": _stats(r["shield_us"])}  # fmt: skip
+               "policy_us": _stats(r["policy_us"]), "shield_us": _stats(r["shield_us"]),
+               "handed_steps": r["handed_steps"]}  # fmt: skip
         result["flights"].append(rec)
         all_step.append(r["step_us"])
         all_policy.append(r["policy_us"])

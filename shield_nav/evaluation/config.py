@@ -253,7 +253,13 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
             raise EvalError(f"unknown configuration {name!r}; known: {sorted(known)} (or define it under 'rows:')")
         row = known[name]
         if row.controller in POLICY_CONTROLLERS and not row.policy:
-            raise EvalError(f"configuration {name!r} is a {row.controller} row but names no checkpoint ('policy:')")
+            hint = ""
+            if name in cfg.rows and name in BUILTIN_ROWS:  # e.g. --set rows.full.shield_overrides.r_safe=0.5
+                hint = (f"; rows.{name} in the config replaces the registry's row {name!r} whole (configs/eval/"
+                        f"rows.yaml), so restate its keys, or define a row of another name")  # fmt: skip
+            raise EvalError(
+                f"configuration {name!r} is a {row.controller} row but names no checkpoint ('policy:'){hint}"
+            )
         if row.controller not in POLICY_CONTROLLERS:
             make_baseline(row.controller, cfg.baselines)  # raises on an unknown controller name
         if row.shield_overrides and not row.shield:

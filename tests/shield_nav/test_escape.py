@@ -320,6 +320,9 @@ def test_row_escape_overrides_are_checked_by_name_before_any_flight():
     handover = E.row_escape_config(cfg.escape, rows["full_handover"], "full_handover")
     assert (handover.kind, handover.circle_turns, handover.circle_window_s) == ("handover", 1.5, 10.0)
     assert dataclasses.replace(handover, kind="sideways", circle_turns=0.0, circle_window_s=6.0) == cfg.escape
+    with pytest.raises(E.EvalError, match=r"rows\.full_handover in the config replaces the registry's row"):
+        E.resolve_rows(E.load_eval_config(None, [*base, "configurations=[full_handover]",
+                                                 "rows.full_handover.escape_overrides.window_s=3.0"]))  # fmt: skip
     mine = ["configurations=[mine]", "rows.mine.policy=full", "rows.mine.shield=true"]
     for extra, match in (
         (["rows.mine.escape=true", "rows.mine.escape_overrides.window=3.0"],

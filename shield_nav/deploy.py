@@ -89,11 +89,9 @@ class _PilotView:
         self.scenes = [SimpleNamespace(bounds_lo=lo, bounds_hi=hi)]
         self.scene_id_buf = np.zeros(n, dtype=np.int64)
         self.frozen_buf = np.zeros(n, dtype=bool)
-        self.vehicles = SimpleNamespace(vel_w=np.zeros((n, 3)), R_wb=np.tile(np.eye(3), (n, 1, 1)))
-        self.local_pos = np.zeros((n, 3))
-        self.goal_buf = np.zeros((n, 3))
-        self.target_speed_buf = np.zeros(n)
-        self.sensor_depth_buf = np.zeros((n, 1, 1, 1), dtype=np.float32)
+        # This step's readings, set by ShieldedPilot._hand_over before the rules or the planner read them.
+        self.vehicles = SimpleNamespace(vel_w=None, R_wb=None)
+        self.local_pos = self.goal_buf = self.target_speed_buf = self.sensor_depth_buf = None
 
 
 class ShieldedPilot:

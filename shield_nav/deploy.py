@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import time
 from types import SimpleNamespace
 from typing import Any
@@ -126,6 +127,9 @@ class ShieldedPilot:
             if handover.kind != "handover":
                 raise ValueError(f"handover.kind: {handover.kind!r}; the pilot hands flights over ('handover'), "
                                  "eval.py flies the other escape kinds")  # fmt: skip
+            if make_baseline(handover.handover_planner, BaselineConfig()).privileged:
+                raise ValueError(f"handover.handover_planner: {handover.handover_planner!r} reads the scene's map, "
+                                 "which a vehicle does not have; eval.py flies it as a bound")  # fmt: skip
         shield = ShieldConfig() if shield is True else (None if shield is False else shield)
         if tuple(info.state_groups) != ("state",):
             raise ValueError(f"policy {info.path!r} reads the observation groups {list(info.state_groups)}; the "
@@ -158,13 +162,44 @@ class ShieldedPilot:
 
     @classmethod
     def load(cls, path: str, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
-             network: str = "export", handover: EscapeConfig | bool = False) -> ShieldedPilot:  # fmt: skip
-        """A pilot for the policy at ``path``, read by :func:`load_policy`.
+             network: str = "export", handover: EscapeConfig | bool = False,
+             warm_up: bool = True) -> ShieldedPilot:  # fmt: skip
+        """A pilot for the policy at ``path``, read by :func:`load_policy`, warmed up (:meth:`warm_up`) unless asked not.
 
         ``path``: a ``checkpoints/<name>`` folder, a run's ``exported/policy.onnx``, or with ``network="fixed_order"``
         a training checkpoint.
         """
-        return cls(load_policy(path, "pilot", network), shield, num_vehicles, handover)
+        pilot = cls(load_policy(path, "pilot", network), shield, num_vehicles, handover)
+        if warm_up:
+            pilot.warm_up()
+        return pilot
+
+    def warm_up(self) -> float:
+        """Run every part of a step once before the first flight, so that no control step pays a first call.
+
+        The shield's and the handover planner's compiled kernels are compiled on their first call, or read from
+        numba's on-disk cache where an earlier run left them, and the network runtime and the QP solver allocate on
+        theirs: on a fresh install the first step takes about 10 s and the first handed step about 2 s, with a warm
+        cache 0.15 s and 25 ms (docs/deploy.md, "Warm-up"). A scratch pilot of the same policy, shield, handover and
+        vehicle count flies three steps on made-up readings (a wall 4 m ahead, seen while the shield acts; then
+        handed over and planned; then no return at all); this pilot's flights, memories and maps are untouched.
+        Returns the seconds it took.
+        """
+        t0 = time.perf_counter()
+        n = self.num_vehicles
+        shield = self.shield.cfg if self.shield is not None else False
+        scratch = ShieldedPilot(self.policy, shield, n, self.handover if self.handover is not None else False)
+        h, w = self.policy.info.depth_shape[-2:]
+        wall, blind = np.full((n, 1, h, w), 4.0), np.zeros((n, 1, h, w))
+        pos = np.tile([5.0, 0.0, 1.5], (n, 1))
+        vel, r_wb = np.tile([3.0, 0.0, 0.0], (n, 1)), np.tile(np.eye(3), (n, 1, 1))
+        scratch.reset(np.tile([60.0, 0.0, 1.5], (n, 1)), 3.0, volume=((0.0, -10.0, 0.0), (70.0, 10.0, 4.0)))
+        scratch.step(wall, pos, vel, r_wb)
+        if scratch._escape is not None:
+            scratch._escape.guided[:] = True  # as if every vehicle had stalled: the planner plans them next step
+        scratch.step(wall, pos, vel, r_wb)
+        scratch.step(blind, pos, vel, r_wb)
+        return time.perf_counter() - t0
 
     def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None) -> None:
         """Start flights for vehicles ``ids`` (all if None): their goal (M, 3) [m] and target speed (M,) or one [m/s].
@@ -196,7 +231,7 @@ class ShieldedPilot:
             n = self.num_vehicles
             self._view = _PilotView(n, self.camera, self.command_dt, self.gravity, volume)
             self._escape = StallEscape(self.handover, n, self.command_dt, self.camera)
-            self._planner = make_baseline("reactive_map", BaselineConfig())
+            self._planner = make_baseline(self.handover.handover_planner, BaselineConfig())
             self._t = 0
 
     def step(self, depth_m: np.ndarray, pos: np.ndarray, vel_w: np.ndarray, R_wb: np.ndarray) -> PilotStep:  # noqa: N803
@@ -262,7 +297,8 @@ class ShieldedPilot:
         if self._t == 0:
             self._planner.reset(view)
         handed = escape.guided.copy()
-        planned = self._planner.commands(view, among=handed)
+        plans_among = "among" in inspect.signature(self._planner.commands).parameters  # as eval.py's rollout
+        planned = self._planner.commands(view, among=handed) if plans_among else self._planner.commands(view)
         cmd[handed] = planned[handed]
         self._t += 1
         return handed

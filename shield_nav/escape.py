@@ -39,6 +39,7 @@ import numpy as np
 from scipy import ndimage
 
 from envs.camera.config import CameraConfig
+from envs.camera.model import R_bc, ray_dirs_c, ray_grid
 from envs.camera.pointcloud import depth_to_points
 from envs.config import require
 from envs.fields.geodesic import geodesic_field
@@ -95,8 +96,13 @@ class EscapeConfig:
     kind: str = "sideways"
     """``sideways``: the escape above. ``map``: from its first stall on, a flight follows a planner over the map of
     what its camera has seen (see :class:`StallEscape`; needs the flight volume's bounds, the camera and R_wb).
-    ``handover``: from its first stall on, a flight is flown by the weight-free ``reactive_map`` planner instead of
-    the policy (the evaluation harness swaps the commands; :attr:`StallEscape.guided` says which flights)."""
+    ``handover``: from its first stall on, a flight is flown by the ``handover_planner`` instead of the policy (the
+    evaluation harness swaps the commands; :attr:`StallEscape.guided` says which flights)."""
+    handover_planner: str = "reactive_map"
+    """``handover``: the baseline controller (a row's ``controller`` name, :data:`shield_nav.baselines.BASELINES`)
+    that flies a stalled flight. ``reactive_map`` (default): the weight-free camera-map planner, what a vehicle can
+    fly; the privileged ones (``expert``, ``expert_cammap``) measure what a better flyer could do from the stall on
+    (``eval.py`` only; the deploy loop refuses them)."""
     map_cell: float = 0.2
     """``map``: the occupancy grid's cell [m] (2D, over the flight volume's horizontal bounds)."""
     map_range: float = 12.0
@@ -116,10 +122,18 @@ class EscapeConfig:
     goal_radius: float = 5.0
     """``map``: the plan's goal region, and within this distance of the goal the true goal input returns (the
     env's ``episode.goal_radius``)."""
+    map_unknown_cost: float = 1.0
+    """``map``: what a metre through space the camera has not shown costs the plan, against 1 through space it has
+    shown free. 1 (default): unseen space is free space, the optimistic plan. Above 1 the map also keeps which
+    cells each image showed (:meth:`CameraMap.observe`) and the plan prefers the ways the camera has seen."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
         require(self.kind in ESCAPE_KINDS, f"{prefix}kind", f"must be one of {list(ESCAPE_KINDS)}, got {self.kind!r}")
+        from shield_nav.baselines import BASELINES  # the baselines import this module
+
+        require(self.handover_planner in BASELINES, f"{prefix}handover_planner",
+                f"must be one of {sorted(BASELINES)}, got {self.handover_planner!r}")  # fmt: skip
         require(self.map_every >= 1, f"{prefix}map_every", f"must be >= 1, got {self.map_every}")
         for key in ("window_s", "min_progress", "hold_s", "goal_distance", "depth_cap", "bounds_stop", "map_cell",
                     "map_range", "map_band", "map_inflate", "replan_s", "lookahead", "goal_radius",
@@ -129,6 +143,8 @@ class EscapeConfig:
         for key in ("hold_growth_s", "bounds_margin", "map_floor", "circle_turns"):
             v = getattr(self, key)
             require(math.isfinite(v) and v >= 0, f"{prefix}{key}", f"must be finite and >= 0, got {v}")
+        v = self.map_unknown_cost
+        require(math.isfinite(v) and v >= 1.0, f"{prefix}map_unknown_cost", f"must be finite and >= 1, got {v}")
 
 
 class StallEscape:
@@ -360,6 +376,9 @@ class CameraMap:
         self.cfg, self.camera, self.lo = cfg, camera, lo
         self.grid = np.zeros((n, int(shape[0]), int(shape[1])), dtype=bool)
         """(n, nx, ny) bool: cells the camera has shown occupied."""
+        self.seen = np.zeros_like(self.grid) if cfg.map_unknown_cost > 1.0 else None
+        """(n, nx, ny) bool: cells an image has shown, free or not (kept only with ``map_unknown_cost`` > 1)."""
+        self._rays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.next_plan = np.zeros(n, dtype=np.int64)
         """(n,) the control step from which each flight is due for a plan again (:meth:`due`)."""
 
@@ -380,6 +399,45 @@ class CameraMap:
             cy = np.floor((p[:, 1] - self.lo[1]) / cfg.map_cell).astype(np.int64)
             ok = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
             grid[i, cx[ok], cy[ok]] = True
+            if self.seen is not None:
+                self._mark_seen(int(i), pos[i], R_wb[i], depth_m[i], floor)
+
+    def _mark_seen(self, i: int, pos: np.ndarray, R_wb: np.ndarray, depth_m: np.ndarray, floor: float) -> None:  # noqa: N803
+        """Mark the cells flight ``i``'s image showed.
+
+        Along each image column's bearing, from the camera to its nearest return within the height band
+        (``map_band`` of the vehicle, ``map_floor`` above the floor), or where no pixel of the band returns, to the
+        farthest point the band's pixels saw free (``max_range``); at most ``map_range`` metres.
+        """
+        cfg, cam = self.cfg, self.camera
+        if self._rays is None:  # the camera's rays, once
+            self._rays = (ray_dirs_c(cam), ray_grid(cam)[0], R_bc(cam))
+        rays, x_u, r_bc = self._rays
+        r_wc = R_wb @ r_bc
+        o = pos + R_wb @ np.asarray(cam.mount_pos_b, dtype=np.float64)
+        z = np.asarray(depth_m, dtype=np.float64).reshape(cam.height, cam.width)
+        ret = (z > 0.0) & (z < cam.max_range)  # a surface; otherwise (no return, or NaN) free up to the range
+        z = np.where(ret, z, cam.max_range)
+        pts = o + z[..., None] * (rays @ r_wc.T)  # (H, W, 3): p_w = o_w + R_wc z (x_u, y_v, 1)
+        band = (np.abs(pts[..., 2] - pos[2]) <= cfg.map_band) & (pts[..., 2] >= floor + cfg.map_floor)
+        dist = np.hypot(pts[..., 0] - o[0], pts[..., 1] - o[1])
+        hit = np.where(band & ret, dist, np.inf).min(axis=0)
+        free = np.where(np.isfinite(hit), hit, np.where(band & ~ret, dist, 0.0).max(axis=0))
+        free = np.minimum(free, cfg.map_range)
+        bearing = (np.stack((x_u, np.zeros_like(x_u), np.ones_like(x_u)), axis=1) @ r_wc.T)[:, :2]
+        norm = np.linalg.norm(bearing, axis=1)
+        keep = (norm > 1e-9) & (free > 0.0)  # a column looking straight up or down has no bearing
+        step = 0.5 * cfg.map_cell
+        t = np.arange(0.0, cfg.map_range + step, step)
+        t = np.where(t[None, :] <= free[keep, None], t[None, :], np.nan)  # (columns, samples)
+        u = bearing[keep] / norm[keep, None]
+        px, py = o[0] + t * u[:, :1], o[1] + t * u[:, 1:]
+        ok = np.isfinite(px)
+        cx = np.floor((px[ok] - self.lo[0]) / cfg.map_cell).astype(np.int64)
+        cy = np.floor((py[ok] - self.lo[1]) / cfg.map_cell).astype(np.int64)
+        nx, ny = self.grid.shape[1:]
+        inside = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
+        self.seen[i, cx[inside], cy[inside]] = True  # type: ignore[index]
 
     @classmethod
     def for_env(cls, cfg: EscapeConfig, env: Any) -> CameraMap:
@@ -434,7 +492,9 @@ class CameraMap:
             if covered_goal == "nan":
                 return None
             free |= to_goal
-        return geodesic_field(free[..., None], to_goal[..., None], cfg.map_cell, self._diag())[0][..., 0], to_goal
+        cost = None if self.seen is None else np.where(self.seen[i], 1.0, cfg.map_unknown_cost)[..., None]
+        out = geodesic_field(free[..., None], to_goal[..., None], cfg.map_cell, self._diag(), cost=cost)
+        return out[0][..., 0], to_goal
 
     def narrow_field(
         self, i: int, goal: np.ndarray, radius: float, clearance: float, weight: float, clear: np.ndarray | None = None

@@ -1138,6 +1138,8 @@ class CameraMapPlanner(PlannerController):
         ids = np.asarray(ids, dtype=np.int64)
         m = self._map
         m.grid[ids] = False
+        if m.seen is not None:
+            m.seen[ids] = False
         m.next_plan[ids] = 0  # due now: commands() replans them (and their clearance) in this call
         m.observe(ids, env.local_pos, env.vehicles.R_wb, env.sensor_depth_buf, float(env.scenes[0].bounds_lo[2]))
 

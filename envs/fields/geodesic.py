@@ -209,6 +209,9 @@ def geodesic_field(
         raise ValueError("goal region is fully blocked: none of its grid nodes is traversable")
     offsets, lengths, inter, n_inter = stencil(stencil_kind)
     nx, ny, nz = traversable.shape
+    if nz == 1:  # a 2D grid: the edges that leave the layer are never usable, so drop them (the same relaxations,
+        flat = offsets[:, 2] == 0  # in the same order, a third of the work)
+        offsets, lengths, inter, n_inter = offsets[flat], lengths[flat], inter[flat], n_inter[flat]
     trav_flat = np.ascontiguousarray(traversable.reshape(-1))
     dist = np.full(trav_flat.shape[0], np.inf)
     if cost is None:

@@ -6,6 +6,9 @@ the commands) and times every :meth:`~shield_nav.deploy.ShieldedPilot.step`: the
 action mapping, shield), the network and the shield alone. Reported per flight and over all of them: mean, p50,
 p99 and max [us], the share of steps with the shield acting, and the share of steps over the 10 ms control period.
 Default flights: a geometric benchmark scene at 3 m/s, a Perlin field at 5 m/s, a dense ablation scene at 9 m/s.
+Also reported: ``warm_up_s``, what :meth:`~shield_nav.deploy.ShieldedPilot.warm_up` took (``load`` runs it: with
+numba's on-disk cache empty it compiles the kernels, seconds; with it filled, a fraction of a second), and
+``first_step_us``, the first control step after it, the step a vehicle's first period holds.
 ``--handover`` adds the stall handover of ``eval.py``'s ``full_handover`` row (its camera map is kept from the first
 step of every flight; ``handed_steps`` says how many steps the planner flew).
 """
@@ -41,10 +44,12 @@ def main(argv: list[str]) -> dict:
         flights.append((family, scene, speed))
     from shield_nav.deploy import ShieldedPilot, fly_trial
 
-    pilot = ShieldedPilot.load(args.checkpoint, handover=args.handover)
-    fly_trial(pilot, *flights[0])  # warm-up: numba kernels, onnxruntime session
+    pilot = ShieldedPilot.load(args.checkpoint, handover=args.handover, warm_up=False)
+    warm_up_s = pilot.warm_up()  # what load() does: every kernel's first call (compiled, or read from numba's cache)
+    first = fly_trial(pilot, *flights[0])  # a flight first: onnxruntime's and the allocator's steady state
     result: dict = {"benchmark": "deploy", "checkpoint": args.checkpoint, "runtime": pilot.policy.info.kind,
-                    "handover": bool(args.handover), "flights": []}  # fmt: skip
+                    "handover": bool(args.handover), "warm_up_s": round(warm_up_s, 3),
+                    "first_step_us": round(float(first["step_us"][0]), 1), "flights": []}  # fmt: skip
     period_us = 1e6 * pilot.shield.cfg.control_dt if pilot.shield is not None else 1e4
     all_step, all_policy, all_shield = [], [], []
     for family, scene, speed in flights:

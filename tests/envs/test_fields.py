@@ -305,3 +305,48 @@ def test_height_cost_anchor_fields_charge_height_above_the_reference_by_hand(tmp
     assert a[1] + 1.0 - 1e-5 <= b[1] <= b[0] + 1.5 + 2.25 + 1e-5
     with pytest.raises(ValueError, match="height_cost"):
         GoalAnchorFields([scene], [f], 1, cache_dir=tmp_path, height_cost=(1.0, -1.0))
+
+
+def test_a_one_layer_geodesic_field_is_scipys_dijkstra_on_the_explicit_graph():
+    """A 2D grid (nz = 1, the camera map's) takes the kernel's in-layer edges only: its field equals scipy's
+    Dijkstra on an edge list built here from the rule in the module docstring (every |dx|, |dy| <= 2 offset of gcd 1,
+    its Euclidean length; usable only with both ends and the nodes its midpoint falls between traversable)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    from envs.fields.geodesic import geodesic_field
+
+    rng = np.random.default_rng(7)
+    nx, ny, res = 23, 17, 0.2
+    trav = rng.random((nx, ny)) > 0.25
+    goal = np.zeros((nx, ny), dtype=bool)
+    goal[18:, 6:11] = True
+    trav[18:, 6:11] = True
+    rows, cols, w = [], [], []
+    for dx in range(-2, 3):
+        for dy in range(-2, 3):
+            if (dx, dy) == (0, 0) or math.gcd(abs(dx), abs(dy)) != 1:
+                continue
+            between = {
+                (math.floor(dx / 2), math.floor(dy / 2)),
+                (math.ceil(dx / 2), math.ceil(dy / 2)),
+                (math.floor(dx / 2), math.ceil(dy / 2)),
+                (math.ceil(dx / 2), math.floor(dy / 2)),
+            }
+            between -= {(0, 0), (dx, dy)}
+            for i in range(nx):
+                for j in range(ny):
+                    a, b = i + dx, j + dy
+                    if not (0 <= a < nx and 0 <= b < ny and trav[i, j] and trav[a, b]):
+                        continue
+                    if all(trav[i + p, j + q] for p, q in between):
+                        rows.append(i * ny + j)
+                        cols.append(a * ny + b)
+                        w.append(res * math.hypot(dx, dy))
+    graph = coo_matrix((w, (rows, cols)), shape=(nx * ny, nx * ny)).tocsr()
+    want = dijkstra(graph, indices=np.flatnonzero(goal.ravel()), min_only=True).reshape(nx, ny)
+    phi, phi_unreachable, reach = geodesic_field(trav[..., None], goal[..., None], res, 10.0)
+    np.testing.assert_array_equal(reach[..., 0], np.isfinite(want) & trav)
+    np.testing.assert_allclose(phi[..., 0][reach[..., 0]], want[reach[..., 0]], rtol=1e-6)
+    pocket = trav & ~reach[..., 0]  # sealed-off traversable nodes: the finite penalty
+    assert pocket.sum() > 0 and (phi[..., 0][pocket] == np.float32(phi_unreachable)).all()

@@ -125,6 +125,34 @@ def test_pilot_with_handover_flies_evals_handed_flight_step_for_step():
     assert (rules.kind, rules.window_s, rules.circle_turns, rules.circle_window_s) == ("handover", 5.0, 1.5, 10.0)
 
 
+def test_warm_up_leaves_the_pilots_flights_as_they_were():
+    """``load`` warms a pilot up (a scratch pilot flies three made-up steps, one handed over): the pilot still asks
+    for a reset, and then flies the same commands, shield activity and handovers, step for step, as a pilot loaded
+    without the warm-up, also when warmed up again in mid-flight (its memories, maps and stall clocks untouched)."""
+    warm = ShieldedPilot.load(FULL, num_vehicles=2, handover=True)
+    cold = ShieldedPilot.load(FULL, num_vehicles=2, handover=True, warm_up=False)
+    with pytest.raises(RuntimeError, match="call reset"):
+        warm.step(np.full((2, 1, 60, 100), 5.0), np.ones((2, 3)), np.zeros((2, 3)), np.repeat(_yaw(0), 2, 0))
+    volume = ([0.0, -16.0, 0.0], [64.0, 16.0, 4.0])
+    for p in (warm, cold):
+        p.reset([[60.0, 0.0, 1.5], [60.0, 3.0, 1.5]], [3.0, 5.0], volume=volume)
+    rng = np.random.default_rng(3)
+    pos = np.array([[5.0, 0.0, 1.5], [5.0, 3.0, 1.2]])
+    vel, R = np.array([[2.0, 0.0, 0.0], [3.0, 0.5, 0.0]]), np.repeat(_yaw(0.1), 2, 0)
+    for t in range(6):
+        depth = rng.uniform(2.0, 8.0, (2, 1, 60, 100))
+        if t == 3:
+            for p in (warm, cold):  # vehicle 1 stalls: the planner flies it from now on
+                p._escape.guided[1] = True
+        if t in (2, 4):
+            warm.warm_up()
+        a, b = warm.step(depth, pos, vel, R), cold.step(depth, pos, vel, R)
+        np.testing.assert_array_equal(a.command, b.command)
+        assert a.shield.active.tolist() == b.shield.active.tolist() and a.handed.tolist() == b.handed.tolist()
+        pos = pos + 0.01 * vel
+    assert a.handed.tolist() == [False, True]
+
+
 def test_pilot_refuses_bad_input():
     pilot = ShieldedPilot.load(FULL, num_vehicles=2)
     depth, pos, vel, R = np.full((2, 1, 60, 100), 5.0), np.ones((2, 3)), np.zeros((2, 3)), np.repeat(_yaw(0), 2, 0)
@@ -157,6 +185,10 @@ def test_pilot_refuses_bad_input():
         ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="map"))
     with pytest.raises(ConfigError, match=r"handover\.window_s"):
         ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="handover", window_s=0.0))
+    with pytest.raises(ConfigError, match=r"handover\.handover_planner"):
+        ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="handover", handover_planner="autopilot"))
+    with pytest.raises(ValueError, match=r"handover_planner: 'expert' reads the scene's map"):
+        ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="handover", handover_planner="expert"))
 
 
 def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):

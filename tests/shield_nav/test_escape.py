@@ -170,6 +170,48 @@ def test_the_camera_map_marks_a_wall_the_image_shows_and_the_plan_goes_round_its
         CameraMap(EscapeConfig(kind="map"), 1, cam, np.zeros(2), np.array([20.0, 0.0]))
 
 
+def test_the_camera_map_keeps_what_the_image_showed_and_a_costly_unknown_turns_the_plan_to_seen_ways():
+    """``map_unknown_cost`` > 1. The flight at (2, 5, 1.5) m, level, heading +x, its image at 4 m: the wall at x =
+    6.1 m (test above). Shown: the 87 deg wedge from the camera at (2.1, 5) to the wall: (4, 5) and (6, 6.5) (21 deg
+    off the axis), not (3, 8.5) (75 deg), not behind the vehicle (1, 5), not beyond the wall (8, 5). An image without
+    returns shows the band free to the camera's range, 10 m along the axis: (11.5, 5) shown, (13, 5) not. The plan:
+    the goal at (18, 5), a mapped wall at x = 10 for 2 < y < 8 (gaps below and above); seen space only up the
+    y > 8 gap. At cost 1 the two ways are mirror images and the plan may take either; at cost 5 the unseen way costs
+    four times more per metre, so the plan's point lies up towards the seen gap."""
+    from envs.camera.config import CameraConfig
+
+    cam = CameraConfig()
+    cfg = EscapeConfig(kind="map", lookahead=3.0, goal_radius=1.0, map_unknown_cost=5.0)
+    cmap = CameraMap(cfg, 1, cam, np.zeros(2), np.array([20.0, 10.0]))
+    pos = np.array([[2.0, 5.0, 1.5]])
+    cmap.observe(np.array([0]), pos, np.eye(3)[None], np.full((1, 1, cam.height, cam.width), 4.0), 0.0)
+
+    def shown(x, y):
+        return bool(cmap.seen[0, int(x / 0.2), int(y / 0.2)])
+
+    assert shown(4.0, 5.0) and shown(6.0, 6.5)
+    assert not shown(3.0, 8.5) and not shown(1.0, 5.0) and not shown(8.0, 5.0)
+    cmap.seen[:] = False
+    cmap.grid[:] = False
+    cmap.observe(np.array([0]), pos, np.eye(3)[None], np.zeros((1, 1, cam.height, cam.width)), 0.0)
+    assert not cmap.grid.any() and shown(11.5, 5.0) and not shown(13.0, 5.0)
+    cmap.seen[:] = False
+    cmap.grid[0, 50, 10:40] = True  # the wall x in [10, 10.2), y in [2, 8)
+    cmap.seen[0, :, 40:] = True  # seen: the strip y >= 8 along the whole volume
+    cmap.seen[0, :12, :] = True  # and round the vehicle
+    goal = np.array([18.0, 5.0, 1.5])
+    p = cmap.plan(0, pos[0], goal)
+    assert p[1] > pos[0, 1] + 1.0, p
+    optimistic = CameraMap(EscapeConfig(kind="map", lookahead=3.0, goal_radius=1.0), 1, cam, np.zeros(2),
+                           np.array([20.0, 10.0]))  # fmt: skip
+    assert optimistic.seen is None
+    optimistic.grid[0, 50, 10:40] = True
+    q = optimistic.plan(0, pos[0], goal)
+    assert q[0] > pos[0, 0] + 2.0 and abs(q[1] - pos[0, 1]) < abs(p[1] - pos[0, 1])  # the straighter way on
+    with pytest.raises(ConfigError, match="map_unknown_cost"):
+        EscapeConfig(kind="map", map_unknown_cost=0.5).validate("escape.")
+
+
 def test_a_circling_flight_escapes_before_the_distance_rule_and_a_weaving_one_does_not():
     """Two flights closing on their goal at 1 m/s (the distance rule never fires). Flight 0 yaws at 2 rad/s: its net
     turn reaches one full turn (2 pi rad) at t = pi s, the first step >= 314.16, 315, where its escape starts (4 s,
@@ -293,6 +335,18 @@ def test_escape_rows_fly_the_shipped_full_and_change_only_stalled_flights():
     for t, p in zip(handed, plain, strict=True):  # handed over at step 20 (0.2 s), flown by the planner to the end
         assert t["escape"] == {"escapes": 1, "escape_steps": t["steps"] - 20, "by_circling": 0}
         assert t["traj"][:3] == p["traj"][:3] and t["traj"][3] != p["traj"][3]
+    # escape.handover_planner names the flyer: reactive_map is the default; the privileged expert (a bound) flies the
+    # same handed flights otherwise from the handover on.
+    by_planner = {}
+    for planner in ("reactive_map", "expert"):
+        cfg = E.load_eval_config(None, [*base, "configurations=[full_escape]", "escape.window_s=0.2",
+                                        "escape.min_progress=1000.0", "escape.kind=handover",
+                                        f"escape.handover_planner={planner}"])  # fmt: skip
+        (spec,) = E.plan_units(E.prepare(cfg))
+        by_planner[planner] = E.run_unit(spec)["trials"]
+    assert [t["traj"] for t in by_planner["reactive_map"]] == [t["traj"] for t in handed]
+    for t, p in zip(by_planner["expert"], handed, strict=True):
+        assert t["escape"]["escapes"] == 1 and t["traj"][:3] == p["traj"][:3] and t["traj"][3] != p["traj"][3]
     # The shipped row `full_handover` carries the handover in its own escape_overrides (kind, circling rule), over
     # the run's sideways default: with the same window it flies the flights handed over above.
     cfg = E.load_eval_config(None, [*base, "configurations=[full_handover]", "escape.window_s=0.2",

@@ -164,7 +164,7 @@ class ShieldedPilot:
     def load(cls, path: str, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
              network: str = "export", handover: EscapeConfig | bool = False,
              warm_up: bool = True) -> ShieldedPilot:  # fmt: skip
-        """A pilot for the policy at ``path``, read by :func:`load_policy`, warmed up (:meth:`warm_up`) unless asked not.
+        """A pilot for the policy at ``path``, read by :func:`load_policy`, warmed up (:meth:`warm_up`) by default.
 
         ``path``: a ``checkpoints/<name>`` folder, a run's ``exported/policy.onnx``, or with ``network="fixed_order"``
         a training checkpoint.

@@ -182,7 +182,8 @@ class ShieldedPilot:
         theirs: on a fresh install the first step takes about 10 s and the first handed step about 2 s, with a warm
         cache 0.15 s and 25 ms (docs/deploy.md, "Warm-up"). A scratch pilot of the same policy, shield, handover and
         vehicle count flies three steps on made-up readings (a wall 4 m ahead, seen while the shield acts; then
-        handed over and planned; then no return at all); this pilot's flights, memories and maps are untouched.
+        handed over and planned; then no return at all), once with a float32 image and once with a float64 one (the
+        kernels are compiled per type); this pilot's flights, memories and maps are untouched.
         Returns the seconds it took.
         """
         t0 = time.perf_counter()
@@ -190,15 +191,16 @@ class ShieldedPilot:
         shield = self.shield.cfg if self.shield is not None else False
         scratch = ShieldedPilot(self.policy, shield, n, self.handover if self.handover is not None else False)
         h, w = self.policy.info.depth_shape[-2:]
-        wall, blind = np.full((n, 1, h, w), 4.0), np.zeros((n, 1, h, w))
         pos = np.tile([5.0, 0.0, 1.5], (n, 1))
         vel, r_wb = np.tile([3.0, 0.0, 0.0], (n, 1)), np.tile(np.eye(3), (n, 1, 1))
-        scratch.reset(np.tile([60.0, 0.0, 1.5], (n, 1)), 3.0, volume=((0.0, -10.0, 0.0), (70.0, 10.0, 4.0)))
-        scratch.step(wall, pos, vel, r_wb)
-        if scratch._escape is not None:
-            scratch._escape.guided[:] = True  # as if every vehicle had stalled: the planner plans them next step
-        scratch.step(wall, pos, vel, r_wb)
-        scratch.step(blind, pos, vel, r_wb)
+        for dtype in (np.float32, np.float64):  # the kernels are compiled per type: a camera's image may be either
+            wall, blind = np.full((n, 1, h, w), 4.0, dtype=dtype), np.zeros((n, 1, h, w), dtype=dtype)
+            scratch.reset(np.tile([60.0, 0.0, 1.5], (n, 1)), 3.0, volume=((0.0, -10.0, 0.0), (70.0, 10.0, 4.0)))
+            scratch.step(wall, pos, vel, r_wb)
+            if scratch._escape is not None:
+                scratch._escape.guided[:] = True  # as if every vehicle had stalled: the planner plans them next step
+            scratch.step(wall, pos, vel, r_wb)
+            scratch.step(blind, pos, vel, r_wb)
         return time.perf_counter() - t0
 
     def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None) -> None:

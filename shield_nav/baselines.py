@@ -19,6 +19,7 @@ with the shield's acceleration model ``a = f_n R(phi, theta, psi) e3 - g e3`` (d
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -158,9 +159,12 @@ class MapGuide:
     region. Reads nothing privileged.
     """
 
-    def __init__(self, cfg: EscapeConfig, env: Any) -> None:  # noqa: D107
+    def __init__(self, cfg: EscapeConfig, env: Any, pool: Executor | None = None) -> None:  # noqa: D107
         self.map = CameraMap.for_env(cfg, env)
         self.target = np.full((env.num_envs, 2), np.nan)
+        self.delay = int(cfg.plan_delay_steps)
+        self.pool = pool  # with a delay: the plans run there (a vehicle's planning thread); None: inline
+        self._pending: list[tuple[int, int, Any]] = []  # (step it is flown from, flight, Future or result)
 
     def __call__(
         self, env: Any, step: int, among: np.ndarray | None = None, now: np.ndarray | None = None
@@ -175,8 +179,18 @@ class MapGuide:
         todo = due if among is None else due[among[due]]
         if now is not None:
             todo = np.union1d(todo, np.flatnonzero(now))
-        for i in todo:
-            self.target[i] = self.map.plan(int(i), pos[i], goal[i])
+        if self.delay == 0:
+            for i in todo:
+                self.target[i] = self.map.plan(int(i), pos[i], goal[i])
+        else:  # this step's map and position, flown from step + delay: the same plans, inline or on the pool
+            m = self.map
+            for i in todo:
+                job = (m.grid[i].copy(), None if m.seen is None else m.seen[i].copy(), pos[i].copy(), goal[i].copy())
+                res = self.pool.submit(m.plan_on, *job) if self.pool is not None else m.plan_on(*job)
+                self._pending.append((step + self.delay, int(i), res))
+            while self._pending and self._pending[0][0] <= step:  # in the order planned: a newer plan wins
+                _, i, res = self._pending.pop(0)
+                self.target[i] = res.result() if isinstance(res, Future) else res
         guide = _unit(goal - pos)
         aim = np.isfinite(self.target[:, 0])  # NaN: the plan reaches the goal region, fly at the goal
         if aim.any():
@@ -349,6 +363,9 @@ class ReactivePlanner(Controller):
         self._step = 0
         self._oracle = OracleController(replace(cfg, oracle=replace(cfg.oracle, guidance="geodesic")))
         self.privileged = rc.guidance == "geodesic"
+        self.plan_pool: Executor | None = None
+        """With ``guidance: map`` and ``camera_map.plan_delay_steps`` >= 1: where the map's plans run (set before
+        :meth:`reset`; the deploy loop's planning thread); None: inline."""
 
     def reset(self, env: Any) -> None:  # noqa: D102
         n = env.num_envs
@@ -357,7 +374,9 @@ class ReactivePlanner(Controller):
         self._dir = np.zeros((n, 3))
         self._planned = np.zeros(n, dtype=bool)  # flights planned at least once since the reset
         self._step = 0
-        self._map = MapGuide(self.cfg.reactive.camera_map, env) if self.cfg.reactive.guidance == "map" else None
+        self._map = (
+            MapGuide(self.cfg.reactive.camera_map, env, self.plan_pool) if self.cfg.reactive.guidance == "map" else None
+        )
 
     def _plan(self, env: Any, i: int, guide: np.ndarray) -> None:
         rc = self.cfg.reactive

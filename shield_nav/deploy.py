@@ -34,6 +34,7 @@ import argparse
 import dataclasses
 import inspect
 import time
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 from typing import Any
 
@@ -107,6 +108,11 @@ class ShieldedPilot:
         num_vehicles: N.
         handover: Stall rules after which the camera-map planner flies a vehicle (an ``EscapeConfig`` of
             ``kind: handover``); True: those of ``eval.py``'s ``full_handover`` row; False (default): none.
+        replan_delay: With a handover, the control steps between a camera-map plan's inputs and the first step that
+            flies it. 0 (default): planned inline, as the ``full_handover`` row (a replan then takes 10-20 ms, over
+            the 10 ms period). ``L`` >= 1: planned on a thread of the pilot's own while the control steps go on,
+            and flown from ``L`` steps later (the step then waits for a plan not yet done); ``eval.py`` flies the
+            same with ``--set baselines.reactive.camera_map.plan_delay_steps=L``. :meth:`close` stops the thread.
 
     Raises:
         ValueError: the policy reads other inputs, the shield asks to choose among hypotheses (``hypotheses``
@@ -115,7 +121,7 @@ class ShieldedPilot:
     """
 
     def __init__(self, policy: LoadedPolicy, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
-                 handover: EscapeConfig | bool = False) -> None:  # noqa: D107  # fmt: skip
+                 handover: EscapeConfig | bool = False, replan_delay: int = 0) -> None:  # noqa: D107  # fmt: skip
         info = policy.info
         if not isinstance(shield, (bool, ShieldConfig)):
             raise TypeError(f"shield: {shield!r}; give a ShieldConfig, True (the default shield) or False (none)")
@@ -142,6 +148,12 @@ class ShieldedPilot:
                              "('top'); eval.py flies the other choices")  # fmt: skip
         if num_vehicles < 1:
             raise ValueError(f"num_vehicles: {num_vehicles}; must be >= 1")
+        if not (isinstance(replan_delay, int) and replan_delay >= 0):
+            raise ValueError(f"replan_delay: {replan_delay!r}; give the control steps (an int >= 0) between a "
+                             "handover plan's inputs and the step that flies it")  # fmt: skip
+        if replan_delay and handover is None:
+            raise ValueError(f"replan_delay: {replan_delay}; it delays the handover planner's plans, so it needs "
+                             "a handover")  # fmt: skip
         nav = load_config(NavConfig, overrides=train_env) if train_env else NavConfig()
         self.policy = policy
         self.action_cfg = nav.action
@@ -155,6 +167,13 @@ class ShieldedPilot:
         self.h = policy.initial_state(n)
         self.command_dt = float(nav.vehicle.command_dt)
         self.handover = handover
+        self.replan_delay = int(replan_delay)
+        base = BaselineConfig()
+        camera_map = dataclasses.replace(base.reactive.camera_map, plan_delay_steps=self.replan_delay)
+        reactive = dataclasses.replace(base.reactive, camera_map=camera_map)
+        self._planner_cfg = dataclasses.replace(base, reactive=reactive)
+        # With a delay the camera-map plans run on a planning thread of their own, off the control step.
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="pilot-replan") if self.replan_delay else None
         self._view: _PilotView | None = None  # with a handover: the env-like view its rules and planner read
         self._escape: StallEscape | None = None
         self._planner: Any = None
@@ -162,14 +181,14 @@ class ShieldedPilot:
 
     @classmethod
     def load(cls, path: str, shield: ShieldConfig | bool = True, num_vehicles: int = 1,
-             network: str = "export", handover: EscapeConfig | bool = False,
+             network: str = "export", handover: EscapeConfig | bool = False, replan_delay: int = 0,
              warm_up: bool = True) -> ShieldedPilot:  # fmt: skip
         """A pilot for the policy at ``path``, read by :func:`load_policy`, warmed up (:meth:`warm_up`) by default.
 
         ``path``: a ``checkpoints/<name>`` folder, a run's ``exported/policy.onnx``, or with ``network="fixed_order"``
         a training checkpoint.
         """
-        pilot = cls(load_policy(path, "pilot", network), shield, num_vehicles, handover)
+        pilot = cls(load_policy(path, "pilot", network), shield, num_vehicles, handover, replan_delay)
         if warm_up:
             pilot.warm_up()
         return pilot
@@ -189,7 +208,8 @@ class ShieldedPilot:
         t0 = time.perf_counter()
         n = self.num_vehicles
         shield = self.shield.cfg if self.shield is not None else False
-        scratch = ShieldedPilot(self.policy, shield, n, self.handover if self.handover is not None else False)
+        handover = self.handover if self.handover is not None else False
+        scratch = ShieldedPilot(self.policy, shield, n, handover, self.replan_delay)
         h, w = self.policy.info.depth_shape[-2:]
         pos = np.tile([5.0, 0.0, 1.5], (n, 1))
         vel, r_wb = np.tile([3.0, 0.0, 0.0], (n, 1)), np.tile(np.eye(3), (n, 1, 1))
@@ -201,7 +221,13 @@ class ShieldedPilot:
                 scratch._escape.guided[:] = True  # as if every vehicle had stalled: the planner plans them next step
             scratch.step(wall, pos, vel, r_wb)
             scratch.step(blind, pos, vel, r_wb)
+        scratch.close()  # waits for its planning thread's plans
         return time.perf_counter() - t0
+
+    def close(self) -> None:
+        """Stop the planning thread (``replan_delay`` >= 1) after its plans in progress; the pilot steps no more."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
 
     def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None) -> None:
         """Start flights for vehicles ``ids`` (all if None): their goal (M, 3) [m] and target speed (M,) or one [m/s].
@@ -233,7 +259,8 @@ class ShieldedPilot:
             n = self.num_vehicles
             self._view = _PilotView(n, self.camera, self.command_dt, self.gravity, volume)
             self._escape = StallEscape(self.handover, n, self.command_dt, self.camera)
-            self._planner = make_baseline(self.handover.handover_planner, BaselineConfig())
+            self._planner = make_baseline(self.handover.handover_planner, self._planner_cfg)
+            self._planner.plan_pool = self._pool
             self._t = 0
 
     def step(self, depth_m: np.ndarray, pos: np.ndarray, vel_w: np.ndarray, R_wb: np.ndarray) -> PilotStep:  # noqa: N803
@@ -391,6 +418,9 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="hand a stalled flight to the camera-map planner (the rules of eval.py's full_handover row)",
     )
+    p.add_argument("--replan-delay", type=int, default=0, metavar="L",
+                   help="with --handover: plan on a thread of its own, flown L control steps later (default 0: "
+                        "inline)")  # fmt: skip
     p.add_argument("--shield", action="append", default=[], metavar="KEY=VALUE",
                    help="a shield parameter other than its default, e.g. depth_filter=median_cross (repeatable; "
                         "docs/shield.md, 'Parameters')")  # fmt: skip
@@ -400,8 +430,11 @@ def main(argv: list[str] | None = None) -> int:
     shield: bool | ShieldConfig = not args.no_shield
     if args.shield:
         shield = load_config(ShieldConfig, overrides=args.shield)  # ConfigError names a bad key or value
-    pilot = ShieldedPilot.load(args.checkpoint, shield, handover=args.handover)
+    if args.replan_delay and not args.handover:
+        p.error("--replan-delay delays the handover planner's plans; it needs --handover")
+    pilot = ShieldedPilot.load(args.checkpoint, shield, handover=args.handover, replan_delay=args.replan_delay)
     r = fly_trial(pilot, args.family, args.scene, args.speed, args.trial)
+    pilot.close()
     shielded = "alone" if args.no_shield else "behind the shield"
     if args.handover:
         shielded += f", handed to the camera-map planner for {r['handed_steps'] * r['duration_s'] / r['steps']:.2f} s"

@@ -122,6 +122,12 @@ class EscapeConfig:
     goal_radius: float = 5.0
     """``map``: the plan's goal region, and within this distance of the goal the true goal input returns (the
     env's ``episode.goal_radius``)."""
+    plan_delay_steps: int = 0
+    """``map`` (the camera-map planner's guide, :class:`shield_nav.baselines.MapGuide`): control steps between a
+    plan's inputs (this step's map and position) and the step that first flies it. 0 (default): the same step, the
+    plan computed inline. ``L`` >= 1: the plan is flown from step ``k + L``, so on a vehicle it can be computed on a
+    thread of its own while the control steps go on (``ShieldedPilot(..., replan_thread=True)``); ``eval.py`` flies
+    the same delay inline, so both fly the same flight."""
     map_unknown_cost: float = 1.0
     """``map``: what a metre through space the camera has not shown costs the plan, against 1 through space it has
     shown free. 1 (default): unseen space is free space, the optimistic plan. Above 1 the map also keeps which
@@ -143,6 +149,7 @@ class EscapeConfig:
         for key in ("hold_growth_s", "bounds_margin", "map_floor", "circle_turns"):
             v = getattr(self, key)
             require(math.isfinite(v) and v >= 0, f"{prefix}{key}", f"must be finite and >= 0, got {v}")
+        require(self.plan_delay_steps >= 0, f"{prefix}plan_delay_steps", f"must be >= 0, got {self.plan_delay_steps}")
         v = self.map_unknown_cost
         require(math.isfinite(v) and v >= 1.0, f"{prefix}map_unknown_cost", f"must be finite and >= 1, got {v}")
 
@@ -485,14 +492,21 @@ class CameraMap:
         ``"nan"``), or the disc kept a source (``"keep"``). ``clear``: :meth:`clearance` of flight ``i`` where the
         caller has it.
         """
+        return self._field_on(self.grid[i], None if self.seen is None else self.seen[i], goal, covered_goal, clear)
+
+    def _field_on(
+        self, grid: np.ndarray, seen: np.ndarray | None, goal: np.ndarray, covered_goal: str = "nan",
+        clear: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+        """:meth:`field` over the given map (nx, ny) and shown cells (or None)."""
         cfg = self.cfg
-        free = (self.clearance(i) if clear is None else clear) > cfg.map_inflate
+        free = (_clearance(grid, cfg.map_cell) if clear is None else clear) > cfg.map_inflate
         to_goal = self._goal_disc(goal)
         if not (free & to_goal).any():
             if covered_goal == "nan":
                 return None
             free |= to_goal
-        cost = None if self.seen is None else np.where(self.seen[i], 1.0, cfg.map_unknown_cost)[..., None]
+        cost = None if seen is None else np.where(seen, 1.0, cfg.map_unknown_cost)[..., None]
         out = geodesic_field(free[..., None], to_goal[..., None], cfg.map_cell, self._diag(), cost=cost)
         return out[0][..., 0], to_goal
 
@@ -520,10 +534,7 @@ class CameraMap:
 
     def clearance(self, i: int) -> np.ndarray:
         """Distance (nx, ny) [m] from each cell centre of flight ``i``'s map to the nearest mapped one (inf: none)."""
-        occ = self.grid[i]
-        if not occ.any():
-            return np.full(occ.shape, np.inf)
-        return ndimage.distance_transform_edt(~occ, sampling=self.cfg.map_cell)
+        return _clearance(self.grid[i], self.cfg.map_cell)
 
     def cell(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The map cells (M,), (M,) of points ``pos`` (M, >=2) in the frame of the bounds, clipped to the grid."""
@@ -545,8 +556,16 @@ class CameraMap:
 
         NaN where the plan reaches the goal region within the lookahead or the mapped obstacles cover that region.
         """
+        return self.plan_on(self.grid[i], None if self.seen is None else self.seen[i], pos, goal)
+
+    def plan_on(self, grid: np.ndarray, seen: np.ndarray | None, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """:meth:`plan` over the given map (nx, ny) and shown cells (or None).
+
+        It reads nothing the map changes, so copies of a flight's map may be planned on another thread while the map
+        takes the next images.
+        """
         cfg = self.cfg
-        out = self.field(i, goal)
+        out = self._field_on(grid, seen, goal)
         if out is None:
             return np.full(2, np.nan)  # the mapped obstacles cover the goal region: fly the true goal
         phi, to_goal = out
@@ -565,6 +584,13 @@ class CameraMap:
                 break  # a local minimum of the plan
             a, b = a0 + k // slope.shape[1], b0 + k % slope.shape[1]
         return np.array([centres_x[a], centres_y[b]])
+
+
+def _clearance(occ: np.ndarray, cell: float) -> np.ndarray:
+    """Distance (nx, ny) [m] from each cell centre to the nearest marked cell of ``occ`` (inf: none marked)."""
+    if not occ.any():
+        return np.full(occ.shape, np.inf)
+    return ndimage.distance_transform_edt(~occ, sampling=cell)
 
 
 def _heading(state: np.ndarray) -> np.ndarray:

@@ -33,6 +33,8 @@ def main(argv: list[str]) -> dict:
     p.add_argument("--checkpoint", default="checkpoints/full", help="policy folder or file")
     p.add_argument("--flights", default=",".join(FLIGHTS), help="comma-separated family:scene:speed")
     p.add_argument("--handover", action="store_true", help="with the stall handover (the full_handover row's rules)")
+    p.add_argument("--replan-delay", type=int, default=0, metavar="L",
+                   help="with --handover: plans on a thread, flown L steps later (default 0)")  # fmt: skip
     args = p.parse_args(argv)
     flights = []
     for item in args.flights.split(","):
@@ -44,11 +46,14 @@ def main(argv: list[str]) -> dict:
         flights.append((family, scene, speed))
     from shield_nav.deploy import ShieldedPilot, fly_trial
 
-    pilot = ShieldedPilot.load(args.checkpoint, handover=args.handover, warm_up=False)
+    if args.replan_delay and not args.handover:
+        p.error("--replan-delay delays the handover planner's plans; it needs --handover")
+    pilot = ShieldedPilot.load(args.checkpoint, handover=args.handover, replan_delay=args.replan_delay, warm_up=False)
     warm_up_s = pilot.warm_up()  # what load() does: every kernel's first call (compiled, or read from numba's cache)
     first = fly_trial(pilot, *flights[0])  # a flight first: onnxruntime's and the allocator's steady state
     result: dict = {"benchmark": "deploy", "checkpoint": args.checkpoint, "runtime": pilot.policy.info.kind,
-                    "handover": bool(args.handover), "warm_up_s": round(warm_up_s, 3),
+                    "handover": bool(args.handover), "replan_delay": args.replan_delay,
+                    "warm_up_s": round(warm_up_s, 3),
                     "first_step_us": round(float(first["step_us"][0]), 1), "flights": []}  # fmt: skip
     period_us = 1e6 * pilot.shield.cfg.control_dt if pilot.shield is not None else 1e4
     all_step, all_policy, all_shield = [], [], []
@@ -71,6 +76,7 @@ def main(argv: list[str]) -> dict:
     result["policy_us"] = _stats(np.concatenate(all_policy))
     result["shield_us"] = _stats(np.concatenate(all_shield))
     result["steps_over_period"] = round(float(np.mean(step > period_us)), 6)
+    pilot.close()
     result.update(machine())
     emit(result, args.json)
     return result

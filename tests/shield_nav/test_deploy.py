@@ -125,6 +125,44 @@ def test_pilot_with_handover_flies_evals_handed_flight_step_for_step():
     assert (rules.kind, rules.window_s, rules.circle_turns, rules.circle_window_s) == ("handover", 5.0, 1.5, 10.0)
 
 
+def test_pilot_planning_on_its_own_thread_flies_evals_delayed_plans_step_for_step():
+    """``replan_delay=2``: the camera-map plans run on the pilot's planning thread and are flown two steps after
+    their inputs; eval.py flies the same delay inline (``baselines.reactive.camera_map.plan_delay_steps=2``). The
+    handed flight through the pilot repeats eval.py's (outcome, steps, handed steps, shield activity, end point),
+    and the delay is real: the same flight planned without it ends elsewhere."""
+    over = {"kind": "handover", "window_s": 0.2, "min_progress": 1000.0}
+    rows = [f"rows.mine.{k}={v}" for k, v in (("policy", "full"), ("shield", "true"), ("escape", "true"))]
+    rows += [f"rows.mine.escape_overrides.{k}={v}" for k, v in over.items()]
+    base = ["name=deploy", "configurations=[mine]", *rows, "scenes.family=ablation", "scenes.indices=[7]",
+            "speeds=[9.0]", "trials_per_scene=1", "plots=false", "network=export",
+            "env_overrides=[episode.timeout_factor=1.5]"]  # fmt: skip
+    recs = {}
+    for delay in (0, 2):
+        cfg = E.load_eval_config(None, [*base, f"baselines.reactive.camera_map.plan_delay_steps={delay}"])
+        (spec,) = E.plan_units(E.prepare(cfg))
+        recs[delay] = E.run_unit(spec)["trials"][0]
+    rec = recs[2]
+    assert recs[0]["traj"][-1] != rec["traj"][-1]
+    env = NavigationEnv(config=nav_config(cfg, spec.family, spec.index, spec.speed, 1, spec.policy_env))
+    seed = trial_seed(cfg.seed, spec.family, spec.index, spec.speed, 0)
+    trial = sample_trial(flown_scene(cfg, spec.family, spec.index), env.field_stack, 0, seed,
+                         env.cfg.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
+    pilot = ShieldedPilot.load(FULL, handover=EscapeConfig(**over), replan_delay=2)
+    assert pilot._pool is not None
+    r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31))
+    pilot.close()
+    assert (r["outcome"], r["steps"], r["handed_steps"]) == (rec["outcome"], rec["steps"], rec["steps"] - 20)
+    assert round(r["shield_active"] * r["steps"]) == rec["shield"]["active_steps"]
+    np.testing.assert_array_equal(np.round(env.local_pos[0], 3), rec["traj"][-1][:3])
+    env.close()
+    with pytest.raises(ValueError, match="replan_delay: 2; it delays the handover planner's plans"):
+        ShieldedPilot(pilot.policy, replan_delay=2)
+    with pytest.raises(ValueError, match="replan_delay: -1"):
+        ShieldedPilot(pilot.policy, handover=True, replan_delay=-1)
+    with pytest.raises(ConfigError, match=r"baselines\.reactive\.camera_map\.plan_delay_steps"):
+        E.load_eval_config(None, [*base, "baselines.reactive.camera_map.plan_delay_steps=-1"])
+
+
 def test_warm_up_leaves_the_pilots_flights_as_they_were():
     """``load`` warms a pilot up (a scratch pilot flies three made-up steps, one handed over): the pilot still asks
     for a reset, and then flies the same commands, shield activity and handovers, step for step, as a pilot loaded

@@ -17,7 +17,9 @@ An edge is usable only if both end nodes and every node its segment passes betwe
 coordinates are the floor or ceil of half the offset, the "no corner cutting" rule) are traversable.
 
 **Solver.** A binary-heap Dijkstra compiled with numba over the implicit grid graph (no edge list in memory),
-multi-source from every traversable node inside the goal region (Phi = 0 there).
+multi-source from every traversable node inside the goal region (Phi = 0 there). On a one-layer grid (nz = 1, the
+camera maps of ``shield_nav.escape``) the edges that leave the layer are dropped before the search: they are never
+usable there, so the relaxations are the same, in the same order, for a third of the edge checks.
 
 **Outside the graph.** Reachable nodes keep their Dijkstra distance. Traversable nodes that cannot reach the goal
 (sealed pockets) get ``phi_unreachable = max(reachable Phi) + |bounds diagonal|``, a finite penalty larger than

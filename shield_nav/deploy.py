@@ -229,6 +229,13 @@ class ShieldedPilot:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
 
+    def __enter__(self) -> ShieldedPilot:
+        """``with ShieldedPilot.load(...) as pilot:`` closes the pilot when the block ends."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:  # noqa: D105
+        self.close()
+
     def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None) -> None:
         """Start flights for vehicles ``ids`` (all if None): their goal (M, 3) [m] and target speed (M,) or one [m/s].
 

@@ -147,10 +147,11 @@ def test_pilot_planning_on_its_own_thread_flies_evals_delayed_plans_step_for_ste
     seed = trial_seed(cfg.seed, spec.family, spec.index, spec.speed, 0)
     trial = sample_trial(flown_scene(cfg, spec.family, spec.index), env.field_stack, 0, seed,
                          env.cfg.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
-    pilot = ShieldedPilot.load(FULL, handover=EscapeConfig(**over), replan_delay=2)
-    assert pilot._pool is not None
-    r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31))
-    pilot.close()
+    with ShieldedPilot.load(FULL, handover=EscapeConfig(**over), replan_delay=2) as pilot:
+        assert pilot._pool is not None
+        r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31))
+    with pytest.raises(RuntimeError, match="shutdown"):  # closed: its planning thread takes no more plans
+        pilot._pool.submit(int)
     assert (r["outcome"], r["steps"], r["handed_steps"]) == (rec["outcome"], rec["steps"], rec["steps"] - 20)
     assert round(r["shield_active"] * r["steps"]) == rec["shield"]["active_steps"]
     np.testing.assert_array_equal(np.round(env.local_pos[0], 3), rec["traj"][-1][:3])

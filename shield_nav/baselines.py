@@ -211,8 +211,12 @@ class Controller:
     def reset(self, env: Any) -> None:
         """Start a new batch of trials in ``env``."""
 
-    def commands(self, env: Any) -> np.ndarray:
-        """Commands (N, 4) = [f_n, phi, theta, psi] for every env (frozen envs are ignored by the env)."""
+    def commands(self, env: Any, among: np.ndarray | None = None) -> np.ndarray:
+        """Commands (N, 4) = [f_n, phi, theta, psi] for every env (frozen envs are ignored by the env).
+
+        ``among`` (N,) bool: the flights whose commands the caller flies (a stall handover's); a planner may plan only
+        those (the reactive planners do), the others command every flight each step. Default all.
+        """
         raise NotImplementedError
 
 
@@ -224,7 +228,7 @@ class GoalSeeker(Controller):
     def __init__(self, cfg: BaselineConfig) -> None:  # noqa: D107
         self.cfg = cfg
 
-    def commands(self, env: Any) -> np.ndarray:  # noqa: D102
+    def commands(self, env: Any, among: np.ndarray | None = None) -> np.ndarray:  # noqa: D102
         pos, vel = env.local_pos, env.vehicles.vel_w
         to_goal = env.goal_buf - pos
         v_des = _unit(to_goal) * env.target_speed_buf[:, None]
@@ -304,7 +308,7 @@ class OracleController(Controller):
         direction[near] = _unit(env.goal_buf[near] - pos[near])
         return direction
 
-    def commands(self, env: Any) -> np.ndarray:  # noqa: D102
+    def commands(self, env: Any, among: np.ndarray | None = None) -> np.ndarray:  # noqa: D102
         oc = self.cfg.oracle
         pos, vel = env.local_pos, env.vehicles.vel_w
         ids = env.scene_id_buf

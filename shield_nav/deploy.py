@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
 import time
 from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
@@ -333,8 +332,7 @@ class ShieldedPilot:
         if self._t == 0:
             self._planner.reset(view)
         handed = escape.guided.copy()
-        plans_among = "among" in inspect.signature(self._planner.commands).parameters  # as eval.py's rollout
-        planned = self._planner.commands(view, among=handed) if plans_among else self._planner.commands(view)
+        planned = self._planner.commands(view, among=handed)
         cmd[handed] = planned[handed]
         self._t += 1
         return handed

@@ -973,7 +973,7 @@ class PlannerController:
         out["speed"] = speed_profile(kappa, cap, ec.lat_accel, ec.brake_accel, ec.ds, ec.min_speed, ec.accel_budget)
         return out
 
-    def commands(self, env: Any) -> np.ndarray:
+    def commands(self, env: Any, among: np.ndarray | None = None) -> np.ndarray:
         """Commands (N, 4) = [f_n, phi, theta, psi] (see the module docstring)."""
         ec = self.ec
         plan = self.plan(env)
@@ -1147,7 +1147,7 @@ class CameraMapPlanner(PlannerController):
         """Flight ``i``'s field (nx, ny) [m] over its current map: the path length to the goal disc round ``goal``."""
         return self._map.field(i, goal, covered_goal="keep")[0]  # type: ignore[index]
 
-    def commands(self, env: Any) -> np.ndarray:
+    def commands(self, env: Any, among: np.ndarray | None = None) -> np.ndarray:
         """Map this step's images, replan the flights that are due, then the expert's command on those fields."""
         if getattr(self, "_env", None) is not env:
             self.reset(env)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import inspect
 import math
 import time
 from dataclasses import dataclass
@@ -190,7 +189,6 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
     if escape is not None and escape.cfg.kind == "handover":
         handover = make_baseline(escape.cfg.handover_planner, cfg.baselines)
         handover.reset(env)
-    plans_among = handover is not None and "among" in inspect.signature(handover.commands).parameters
     volume = (np.asarray(env.scenes[0].bounds_lo[:2]), np.asarray(env.scenes[0].bounds_hi[:2]))  # one scene per unit
     pick_hypotheses = shield is not None and policy is not None and shield.cfg.hypotheses != "top"
     ids = np.zeros(n, dtype=np.int64)
@@ -231,8 +229,7 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             act, cmd = zeros, ctrl.commands(env)  # type: ignore[union-attr]
         if handover is not None:  # called every step: the planner maps every flight's images from the start
             handed = escape.guided & live  # type: ignore[union-attr]
-            # A planner that can plan a subset plans the handed flights; the others command every flight each step.
-            planned = handover.commands(env, among=handed) if plans_among else handover.commands(env)  # type: ignore[call-arg]
+            planned = handover.commands(env, among=handed)
             cmd[handed] = planned[handed]  # type: ignore[index]
         step_active = np.zeros(n, dtype=bool)
         if shield is not None:

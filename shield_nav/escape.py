@@ -126,8 +126,9 @@ class EscapeConfig:
     """``map`` (the camera-map planner's guide, :class:`shield_nav.baselines.MapGuide`): control steps between a
     plan's inputs (this step's map and position) and the step that first flies it. 0 (default): the same step, the
     plan computed inline. ``L`` >= 1: the plan is flown from step ``k + L``, so on a vehicle it can be computed on a
-    thread of its own while the control steps go on (``ShieldedPilot(..., replan_thread=True)``); ``eval.py`` flies
-    the same delay inline, so both fly the same flight."""
+    thread of its own while the control steps go on (``ShieldedPilot(..., replan_delay=L)``); ``eval.py`` flies the
+    same delay inline, so both fly the same flight. Read by the planner's map (``baselines.reactive.camera_map``);
+    the stall escape's own section refuses it."""
     map_unknown_cost: float = 1.0
     """``map``: what a metre through space the camera has not shown costs the plan, against 1 through space it has
     shown free. 1 (default): unseen space is free space, the optimistic plan. Above 1 the map also keeps which
@@ -165,6 +166,11 @@ class StallEscape:
         cfg.validate("escape.")
         if cfg.kind == "map" and camera is None:
             raise ValueError("stall escape: escape.kind 'map' needs the camera configuration")
+        if cfg.plan_delay_steps:
+            raise ValueError(
+                f"stall escape: escape.plan_delay_steps {cfg.plan_delay_steps}; the escape plans inline, the delay is "
+                "the handover planner's (baselines.reactive.camera_map.plan_delay_steps)"
+            )
         self.cfg, self.n, self.dt, self.camera = cfg, n, dt, camera
         self.map: CameraMap | None = None  # kind 'map': what each flight's camera has shown (made at the first call)
         self.guided = np.zeros(n, dtype=bool)

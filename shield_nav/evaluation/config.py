@@ -270,7 +270,12 @@ def resolve_rows(cfg: EvalConfig) -> dict[str, RowConfig]:
         if row.escape_overrides and not row.escape:
             raise EvalError(f"configuration {name!r} has escape_overrides but no stall escape ('escape: true')")
         row_shield_config(cfg.shield, row, name)  # raises on a bad key or value
-        row_escape_config(cfg.escape, row, name)
+        escape = row_escape_config(cfg.escape, row, name)  # raises on a bad key or value
+        if row.escape and escape.plan_delay_steps:
+            raise EvalError(
+                f"configuration {name!r}: escape.plan_delay_steps must be 0, the stall escape plans inline; a "
+                "handover planner's delay is baselines.reactive.camera_map.plan_delay_steps"
+            )
         out[name] = row
     return out
 

@@ -14,7 +14,7 @@ from envs.navigation import NavigationEnv
 from envs.navigation import interface as I
 from envs.navigation.config import ActionConfig
 from shield_nav.deploy import ShieldedPilot, fly
-from shield_nav.escape import EscapeConfig
+from shield_nav.escape import EscapeConfig, StallEscape
 from shield_nav.evaluation.rollout import flown_scene, nav_config, sample_trial, trial_seed
 from shield_nav.shield import ShieldConfig
 
@@ -162,6 +162,10 @@ def test_pilot_planning_on_its_own_thread_flies_evals_delayed_plans_step_for_ste
         ShieldedPilot(pilot.policy, handover=True, replan_delay=-1)
     with pytest.raises(ConfigError, match=r"baselines\.reactive\.camera_map\.plan_delay_steps"):
         E.load_eval_config(None, [*base, "baselines.reactive.camera_map.plan_delay_steps=-1"])
+    with pytest.raises(ValueError, match=r"escape\.plan_delay_steps 2; the escape plans inline"):
+        StallEscape(EscapeConfig(kind="handover", plan_delay_steps=2), 1, 0.01)
+    with pytest.raises(E.EvalError, match=r"'mine': escape\.plan_delay_steps must be 0"):
+        E.resolve_rows(E.load_eval_config(None, [*base, "escape.plan_delay_steps=2"]))
 
 
 def test_warm_up_leaves_the_pilots_flights_as_they_were():

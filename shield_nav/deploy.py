@@ -197,9 +197,9 @@ class ShieldedPilot:
 
         The shield's and the handover planner's compiled kernels are compiled on their first call, or read from
         numba's on-disk cache where an earlier run left them, and the network runtime and the QP solver allocate on
-        theirs: on a fresh install the first step takes about 10 s and the first handed step about 2 s, with a warm
-        cache 0.15 s and 25 ms (docs/deploy.md, "Warm-up"). A scratch pilot of the same policy, shield, handover and
-        vehicle count flies three steps on made-up readings (a wall 4 m ahead, seen while the shield acts; then
+        theirs, so without a warm-up the first steps of a flight can take seconds (measured in docs/deploy.md,
+        "Warm-up"). A scratch pilot of the same policy, shield, handover, planning delay and vehicle count flies three
+        steps on made-up readings (a wall 4 m ahead, seen while the shield acts; then
         handed over and planned; then no return at all), once with a float32 image and once with a float64 one (the
         kernels are compiled per type); this pilot's flights, memories and maps are untouched.
         Returns the seconds it took.

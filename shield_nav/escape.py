@@ -423,9 +423,10 @@ class CameraMap:
         farthest point the band's pixels saw free (``max_range``); at most ``map_range`` metres.
         """
         cfg, cam = self.cfg, self.camera
-        if self._rays is None:  # the camera's rays, once
-            self._rays = (ray_dirs_c(cam), ray_grid(cam)[0], R_bc(cam))
-        rays, x_u, r_bc = self._rays
+        if self._rays is None:  # the camera's pixel rays and its columns' centre rays (camera frame), once
+            x_u = ray_grid(cam)[0]
+            self._rays = (ray_dirs_c(cam), np.stack((x_u, np.zeros_like(x_u), np.ones_like(x_u)), axis=1), R_bc(cam))
+        rays, columns, r_bc = self._rays
         r_wc = R_wb @ r_bc
         o = pos + R_wb @ np.asarray(cam.mount_pos_b, dtype=np.float64)
         z = np.asarray(depth_m, dtype=np.float64).reshape(cam.height, cam.width)
@@ -437,7 +438,7 @@ class CameraMap:
         hit = np.where(band & ret, dist, np.inf).min(axis=0)
         free = np.where(np.isfinite(hit), hit, np.where(band & ~ret, dist, 0.0).max(axis=0))
         free = np.minimum(free, cfg.map_range)
-        bearing = (np.stack((x_u, np.zeros_like(x_u), np.ones_like(x_u)), axis=1) @ r_wc.T)[:, :2]
+        bearing = (columns @ r_wc.T)[:, :2]
         norm = np.linalg.norm(bearing, axis=1)
         keep = (norm > 1e-9) & (free > 0.0)  # a column looking straight up or down has no bearing
         step = 0.5 * cfg.map_cell

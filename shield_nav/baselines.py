@@ -29,7 +29,6 @@ from envs.camera import depth_to_points
 from envs.config import require
 from shield_nav.escape import CameraMap, EscapeConfig
 from shield_nav.expert import CameraMapPlanner, ExpertConfig, PlannerController
-from shield_nav.shield_rows import accel_from_command
 from shield_nav.tracking import TrackingConfig, accel_to_command
 
 
@@ -198,28 +197,6 @@ class MapGuide:
             d = np.concatenate((self.target[aim] - pos[aim, :2], (goal - pos)[aim, 2:3]), axis=1)
             guide[aim] = _unit(d)
         return guide
-
-
-def route_choice(
-    candidates: np.ndarray, vel: np.ndarray, guide: np.ndarray, horizon_s: float, margin: float, gravity: float = 9.81
-) -> np.ndarray:
-    """Which of each flight's candidate commands heads along its route: index (N,) into ``candidates`` (N, K, 4).
-
-    Candidate ``k``'s heading is that of ``v + a_k * horizon_s`` horizontally (``a_k`` its world acceleration,
-    ``vel`` (N, 3) the vehicle's velocity); its score the cosine between that heading and ``guide`` (N, 3)
-    horizontally. Candidate 0 (the policy's own choice) is kept unless another's score exceeds its by ``margin``
-    or more, in which case the best-scored one is returned. A zero heading or guide scores 0.
-    """
-    cand = np.asarray(candidates, dtype=np.float64)
-    n, k, _ = cand.shape
-    acc = accel_from_command(cand.reshape(n * k, 4), gravity).reshape(n, k, 3)
-    u = np.asarray(vel, dtype=np.float64)[:, None, :2] + horizon_s * acc[:, :, :2]
-    g = np.asarray(guide, dtype=np.float64)[:, None, :2]
-    den = np.linalg.norm(u, axis=2) * np.linalg.norm(g, axis=2)
-    cos = np.where(den > 1e-9, (u * g).sum(axis=2) / np.maximum(den, 1e-9), 0.0)
-    best = np.argmax(cos, axis=1)
-    gain = cos[np.arange(n), best] - cos[:, 0]
-    return np.where(gain >= margin, best, 0)
 
 
 class Controller:

@@ -235,16 +235,7 @@ class ShieldConfig:
     candidate in score order that breaks none is flown instead, uncorrected; if none is clean, the best-scored one
     is corrected by the QP as with ``"top"``. ``"safest"``: the same, except that when none is clean the candidate
     with the largest smallest row margin is corrected. The evaluation asks the policy for its candidates only when
-    this is not ``"top"`` (docs/shield.md, "Choosing among the policy's hypotheses"). ``"route"``: the evaluation
-    harness chooses before the shield (:func:`shield_nav.baselines.route_choice`): the candidate that heads along
-    the plan over the map of what the flight's camera has shown (``baselines.reactive.camera_map``), when it heads
-    along it by ``route_margin`` more than the best-scored one; the shield then filters that candidate."""
-    route_horizon_s: float = 0.5
-    """``hypotheses: route``: a candidate's heading is that of the horizontal velocity its acceleration gives after
-    this many seconds."""
-    route_margin: float = 0.5
-    """``hypotheses: route``: the gain in the cosine between a candidate's heading and the plan's direction over the
-    best-scored candidate's at which another candidate is flown, in (0, 2]."""
+    this is not ``"top"`` (docs/shield.md, "Choosing among the policy's hypotheses")."""
 
     def validate(self, prefix: str = "") -> None:
         """Reject bad values, naming the key."""
@@ -252,10 +243,6 @@ class ShieldConfig:
                 f"must be one of {list(DEPTH_FILTERS)}, got {self.depth_filter!r}")  # fmt: skip
         require(self.hypotheses in HYPOTHESIS_MODES, f"{prefix}hypotheses",
                 f"must be one of {list(HYPOTHESIS_MODES)}, got {self.hypotheses!r}")  # fmt: skip
-        require(math.isfinite(self.route_horizon_s) and self.route_horizon_s > 0, f"{prefix}route_horizon_s",
-                f"must be finite and > 0, got {self.route_horizon_s}")  # fmt: skip
-        require(math.isfinite(self.route_margin) and 0 < self.route_margin <= 2, f"{prefix}route_margin",
-                f"must be in (0, 2], got {self.route_margin}")  # fmt: skip
         require(self.alpha0 > 0, f"{prefix}alpha0", f"must be > 0, got {self.alpha0}")
         require(self.alpha1 > 0, f"{prefix}alpha1", f"must be > 0, got {self.alpha1}")
         require(self.r_safe > 0, f"{prefix}r_safe", f"must be > 0, got {self.r_safe}")
@@ -322,7 +309,7 @@ class ShieldConfig:
         )
 
 
-HYPOTHESIS_MODES = ("top", "first_clean", "safest", "route")
+HYPOTHESIS_MODES = ("top", "first_clean", "safest")
 """Values of :attr:`ShieldConfig.hypotheses`."""
 
 
@@ -700,7 +687,7 @@ class HOCBFShield:
             bad = np.flatnonzero(~np.isfinite(cmd).all(axis=1)).tolist()
             raise ValueError(f"non-finite command for vehicle index(es) {bad}")
         alts = None
-        if alternatives is not None and self.cfg.hypotheses in ("first_clean", "safest"):
+        if alternatives is not None and self.cfg.hypotheses != "top":
             alts = np.asarray(alternatives, dtype=np.float64)
             if alts.ndim != 3 or alts.shape[0] != num or alts.shape[2] != 4:
                 raise ValueError(f"alternatives must be (N, J, 4) with N = {num}, got shape {alts.shape}")

@@ -14,7 +14,7 @@ import yaml
 from envs.config import ConfigError, load_config
 from envs.navigation.config import NavConfig
 from envs.scenes import FAMILIES, make_scene
-from shield_nav.baselines import Controller, MapGuide, make_baseline, route_choice
+from shield_nav.baselines import Controller, make_baseline
 from shield_nav.escape import StallEscape
 from shield_nav.evaluation.config import (
     EVAL_FORMAT_VERSION,
@@ -191,9 +191,6 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
         handover.reset(env)
     volume = (np.asarray(env.scenes[0].bounds_lo[:2]), np.asarray(env.scenes[0].bounds_hi[:2]))  # one scene per unit
     pick_hypotheses = shield is not None and policy is not None and shield.cfg.hypotheses != "top"
-    # hypotheses 'route': the candidate is chosen here, along the plan over each flight's camera map
-    choosing = shield.cfg.hypotheses if pick_hypotheses else "top"  # type: ignore[union-attr]
-    route = MapGuide(cfg.baselines.reactive.camera_map, env) if choosing == "route" else None
     ids = np.zeros(n, dtype=np.int64)
     pos0 = env.local_pos.copy()
     phi_start = env.field_stack.geodesic(ids, pos0)
@@ -228,17 +225,6 @@ def _run_batch(spec: UnitSpec, cfg: EvalConfig, trials: list[dict], env: Any, on
             else:
                 act = teacher.step(priv["teacher"])  # type: ignore[union-attr]
             cmd = env.action_to_command(np.clip(act, -1.0, 1.0)) if shield is not None or handover else None
-            if route is not None:
-                guide = route(env, t)
-                cands = np.concatenate((cmd[:, None], alt_cmd), axis=1)  # type: ignore[index]
-                k = route_choice(cands, env.vehicles.vel_w, guide, shield.cfg.route_horizon_s,  # type: ignore[union-attr]
-                                 shield.cfg.route_margin, shield.cfg.gravity)  # type: ignore[union-attr]  # fmt: skip
-                sw = np.flatnonzero((k > 0) & live)
-                cmd[sw] = cands[sw, k[sw]]  # type: ignore[index]
-                act = act.copy()
-                act[sw] = alt_act[sw, k[sw] - 1]  # type: ignore[index]
-                sh["switched_steps"][sw] += 1
-                alt_cmd = alt_act = None
         else:
             act, cmd = zeros, ctrl.commands(env)  # type: ignore[union-attr]
         if handover is not None:  # called every step: the planner maps every flight's images from the start

@@ -15,7 +15,7 @@ the PX4-style inner loop::
 
 It builds the policy's state vector and reads its action with the functions the env itself uses
 (:mod:`envs.navigation.interface`), with the action, camera and vehicle settings the policy was trained with, and
-filters with the same :class:`~shield_nav.shield.HOCBFShield` as ``eval.py``'s shielded rows, so a flight flown
+filters with the same :class:`~shield_nav.safety.shield.HOCBFShield` as ``eval.py``'s shielded rows, so a flight flown
 through it is the evaluation's flight (tested trial for trial against ``eval.py``'s ``full`` row).
 
 With ``handover=True`` a stalled flight (no metre closer to its goal in 5 s, or 1.5 net turns of heading in 10 s) is
@@ -43,10 +43,10 @@ from envs.camera import normalize_depth
 from envs.config import load_config
 from envs.navigation import interface as I
 from envs.navigation.config import NavConfig
-from shield_nav.baselines import BaselineConfig, make_baseline
-from shield_nav.escape import EscapeConfig, StallEscape
+from shield_nav.algorithms.baselines import BaselineConfig, make_baseline
 from shield_nav.evaluation.policies import LoadedPolicy, load_policy
-from shield_nav.shield import HOCBFShield, ShieldConfig, ShieldOutput
+from shield_nav.safety.escape import EscapeConfig, StallEscape
+from shield_nav.safety.shield import HOCBFShield, ShieldConfig, ShieldOutput
 
 __all__ = ["PilotStep", "ShieldedPilot"]
 

@@ -4,7 +4,7 @@ A seeded evaluation repeats trial for trial on one machine with one set of packa
 not: numpy, numba/llvmlite, scipy, MuJoCo or the QP solvers may round one operation differently, and a flight near
 the edge of a collision or of the time limit then ends the other way (how often: docs/evaluation.md, "Reproducing a
 table"). So every ``eval.py`` manifest and every checkpoint records these versions, a resumed evaluation names the
-ones that changed, and ``python -m shield_nav.paired`` says when its two sides were flown with different ones. The
+ones that changed, and ``python -m shield_nav.tools.paired`` says when its two sides were flown with different ones. The
 processor's SIMD extensions (:func:`cpu_simd`) are recorded and compared beside them: with the same packages, two
 machines flew a few trials differently (2026-12-01, docs/evaluation.md); numba compiles for the processor and numpy,
 MuJoCo and torch choose kernels by it.

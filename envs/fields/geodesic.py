@@ -18,8 +18,8 @@ coordinates are the floor or ceil of half the offset, the "no corner cutting" ru
 
 **Solver.** A binary-heap Dijkstra compiled with numba over the implicit grid graph (no edge list in memory),
 multi-source from every traversable node inside the goal region (Phi = 0 there). On a one-layer grid (nz = 1, the
-camera maps of ``shield_nav.escape``) the edges that leave the layer are dropped before the search: they are never
-usable there, so the relaxations are the same, in the same order, for a third of the edge checks.
+camera maps of ``shield_nav.safety.escape``) the edges that leave the layer are dropped before the search: they are
+never usable there, so the relaxations are the same, in the same order, for a third of the edge checks.
 
 **Outside the graph.** Reachable nodes keep their Dijkstra distance. Traversable nodes that cannot reach the goal
 (sealed pockets) get ``phi_unreachable = max(reachable Phi) + |bounds diagonal|``, a finite penalty larger than

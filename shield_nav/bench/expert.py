@@ -5,7 +5,8 @@ the box mazes, where the expert descends the narrow field; rendering off) is flo
 planning expert; each control step's expert call (path trace, smoothing, speed profile, tracker) is timed, and so
 is the scripted oracle's on the same states. Reported: microseconds per env per label for both, the env step without
 rendering, for scale, and ``narrow_share``, the share of labels on the narrow field.
-``--set KEY=VALUE`` (repeatable) times a variant of the expert (:class:`shield_nav.expert.ExpertConfig` keys).
+``--set KEY=VALUE`` (repeatable) times a variant of the expert
+(:class:`shield_nav.algorithms.expert_config.ExpertConfig` keys).
 """
 
 from __future__ import annotations
@@ -17,11 +18,11 @@ import numpy as np
 from envs.config import ConfigError, load_config
 from envs.navigation import NavigationEnv
 from envs.scenes import FAMILIES
-from shield_nav.baselines import BaselineConfig, OracleConfig, OracleController
+from shield_nav.algorithms.baselines import BaselineConfig, OracleConfig, OracleController
+from shield_nav.algorithms.expert import PlannerController
 from shield_nav.bench.common import emit, machine, parser
 from shield_nav.evaluation.config import EvalError, parse_scenes
-from shield_nav.expert import PlannerController
-from shield_nav.speed_budget import parse_key_value
+from shield_nav.tools.speed_budget import parse_key_value
 
 
 def main(argv: list[str]) -> dict:

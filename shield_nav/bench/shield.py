@@ -21,8 +21,8 @@ import qpsolvers
 from envs.camera import CameraConfig, depth_to_points
 from shield_nav.bench.common import emit, machine, parser
 from shield_nav.evaluation.config import BUILTIN_ROWS
-from shield_nav.scripted import fly
-from shield_nav.shield import HOCBFShield, ShieldConfig, accel_from_command
+from shield_nav.safety.shield import HOCBFShield, ShieldConfig, accel_from_command
+from shield_nav.tools.scripted import fly
 
 PAPER = {"mean_us": 90.61, "max_us": 384.5, "active_fraction": 0.1306}
 PAPER_FORMULATION = dict(BUILTIN_ROWS["full_paper_shield"].shield_overrides)

@@ -11,9 +11,9 @@ import yaml
 
 from envs.config import ConfigError, load_config, require
 from envs.scenes import FAMILIES
-from shield_nav.baselines import BaselineConfig, make_baseline
-from shield_nav.escape import EscapeConfig
-from shield_nav.shield import ShieldConfig
+from shield_nav.algorithms.baselines import BaselineConfig, make_baseline
+from shield_nav.safety.escape import EscapeConfig
+from shield_nav.safety.shield import ShieldConfig
 
 EVAL_FORMAT_VERSION = 1
 """Version of the unit/manifest JSON layout; bump when it changes."""
@@ -47,7 +47,7 @@ class RowConfig:
     """This row's shield settings over the run's ``shield`` section (keys of ``ShieldConfig``), e.g. the paper's
     formulation beside the default shield in one table (``full_paper_shield`` in configs/eval/rows.yaml)."""
     escape: bool = False
-    """Put the stall escape (:mod:`shield_nav.escape`, the run's ``escape`` section) between the goal and the
+    """Put the stall escape (:mod:`shield_nav.safety.escape`, the run's ``escape`` section) between the goal and the
     policy; ``controller: policy`` only."""
     escape_overrides: dict[str, Any] = field(default_factory=dict)
     """This row's stall-escape settings over the run's ``escape`` section (keys of ``EscapeConfig``), e.g. the
@@ -178,7 +178,7 @@ class EvalConfig:
     shield: ShieldConfig = field(default_factory=ShieldConfig)
     """HOCBF shield of rows with ``shield: true``."""
     escape: EscapeConfig = field(default_factory=EscapeConfig)
-    """Stall escape of rows with ``escape: true`` (:mod:`shield_nav.escape`)."""
+    """Stall escape of rows with ``escape: true`` (:mod:`shield_nav.safety.escape`)."""
     baselines: BaselineConfig = field(default_factory=BaselineConfig)
     """Baseline controller parameters."""
     plots: bool = True

@@ -5,16 +5,16 @@ sums its products in its own order: the same policy file gives actions that diff
 processor kind to another, and closed-loop flight grows such differences into other trajectories (13-16 of 100
 trials end otherwise when only the network's kernels change; docs/evaluation.md, "Reproducing a table"). This module
 runs the same weights (read from the TorchScript export ``policy.pt``, or from a training checkpoint ``model*.pt``
-through :func:`shield_nav.package.actor_from_checkpoint`, which needs no TorchScript) with plain loops compiled by
+through :func:`shield_nav.tools.package.actor_from_checkpoint`, which needs no TorchScript) with plain loops compiled by
 numba without ``fastmath``: every sum runs in one written order in float64, no operation is fused or reassociated,
 and the exponential is this module's own polynomial (libm's may differ between its FMA and non-FMA variants). So the
 actions are the same bits on every processor numba compiles for; the test suite checks that a baseline x86-64 build
 (``NUMBA_CPU_NAME=generic``) gives the host build's bits.
 
-The layers are those of :class:`shield_nav.models.DepthGRUModel` exports: the state normaliser, the convolution stack
-(``Conv2d``, ``ReLU``, ``MaxPool2d(2)``), ``Flatten -> Linear -> ReLU``, a GRU (any number of layers, PyTorch's gate
-equations), the MLP head (``Linear`` with ``ELU`` / ``ReLU`` / ``Tanh``) and the multi-hypothesis selection. Anything
-else is refused by name when the file is loaded.
+The layers are those of :class:`shield_nav.policies.models.DepthGRUModel` exports: the state normaliser, the convolution
+stack (``Conv2d``, ``ReLU``, ``MaxPool2d(2)``), ``Flatten -> Linear -> ReLU``, a GRU (any number of layers, PyTorch's
+gate equations), the MLP head (``Linear`` with ``ELU`` / ``ReLU`` / ``Tanh``) and the multi-hypothesis selection.
+Anything else is refused by name when the file is loaded.
 """
 
 from __future__ import annotations
@@ -237,7 +237,7 @@ class FixedOrderActor:
     """The layers of a ``DepthGRUModel`` export, run by :mod:`numba` loops in one fixed order.
 
     The export is the TorchScript file's module (``torch.jit.load``) or the eager
-    :class:`~shield_nav.models.ExportedDepthGRU` of a training checkpoint (what ``load_policy`` builds for a
+    :class:`~shield_nav.policies.export.ExportedDepthGRU` of a training checkpoint (what ``load_policy`` builds for a
     ``model*.pt``); both hold the same parameters, so both give the same bits.
 
     ``forward(state (N, S), depth (N, C, H, W), h (L, N, Hd)) -> (head (N, K * (A + 1)) or (N, A), h_out)``,

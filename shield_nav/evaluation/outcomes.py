@@ -4,7 +4,7 @@
 (``row, family, scene, speed, trial`` and its ``seed``, which paired checks), how it ended (``outcome``,
 ``steps``) and ``flew_over`` (a success over the obstacles' tops; empty where not recorded). About 30 kB for a full
 Table I row set, where the unit files hold tens of MB of trajectories, so it can be kept in ``docs/data/`` with the
-summary; ``python -m shield_nav.paired`` reads it where a folder has no unit files. Written with a zero gzip time
+summary; ``python -m shield_nav.tools.paired`` reads it where a folder has no unit files. Written with a zero gzip time
 stamp, so the same trials give the same bytes.
 """
 
@@ -43,7 +43,7 @@ def read_outcomes(path: str) -> list[dict]:
     """The trials of an ``outcomes.csv.gz``, one record each.
 
     Keys ``row, family, scene, speed, trial, seed, outcome, steps`` and ``metrics`` (``{"flew_over": x}``, empty
-    where it was not recorded): the shape of a unit file's trial that :mod:`shield_nav.paired` reads.
+    where it was not recorded): the shape of a unit file's trial that :mod:`shield_nav.tools.paired` reads.
     """
     with gzip.open(path, "rt", newline="") as f:
         reader = csv.DictReader(f)

@@ -379,13 +379,13 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
 
 
 def _checkpoint_export(file: str, name: str) -> Any:
-    """The eager :class:`~shield_nav.models.ExportedDepthGRU` of a training checkpoint's actor or DAgger student.
+    """The eager :class:`~shield_nav.policies.export.ExportedDepthGRU` of a training checkpoint's actor or student.
 
     Rebuilt from the config stored in the checkpoint: the same weights as its TorchScript export, read without
     TorchScript.
     """
-    from shield_nav.models import ExportedDepthGRU
-    from shield_nav.package import actor_from_checkpoint
+    from shield_nav.policies.export import ExportedDepthGRU
+    from shield_nav.tools.package import actor_from_checkpoint
 
     try:
         model, _, _ = actor_from_checkpoint(file)

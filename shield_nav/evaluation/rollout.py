@@ -14,8 +14,7 @@ import yaml
 from envs.config import ConfigError, load_config
 from envs.navigation.config import NavConfig
 from envs.scenes import FAMILIES, make_scene
-from shield_nav.baselines import Controller, make_baseline
-from shield_nav.escape import StallEscape
+from shield_nav.algorithms.baselines import Controller, make_baseline
 from shield_nav.evaluation.config import (
     EVAL_FORMAT_VERSION,
     EvalConfig,
@@ -26,7 +25,8 @@ from shield_nav.evaluation.config import (
 )
 from shield_nav.evaluation.metrics import aggregate, max_turns, trajectory_metrics
 from shield_nav.evaluation.policies import LoadedPolicy, LoadedTeacher, PolicyInfo, load_policy, load_teacher
-from shield_nav.shield import STATUS_FALLBACK, STATUS_RELAXED, HOCBFShield
+from shield_nav.safety.escape import StallEscape
+from shield_nav.safety.shield import STATUS_FALLBACK, STATUS_RELAXED, HOCBFShield
 
 
 @dataclass

@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 
 from envs.config import stored_config, to_dict
-from shield_nav.baselines import BASELINES
+from shield_nav.algorithms.baselines import BASELINES
 from shield_nav.evaluation.config import (
     EVAL_FORMAT_VERSION,
     POLICY_CONTROLLERS,

@@ -36,8 +36,9 @@ _EXPORTS = {
         "MULTI_HYPOTHESIS_ALGORITHM", "REPO_ROOT", "SCHEDULED_ALGORITHM", "ActorConfig", "AlgorithmConfig",
         "AnchoredPPOConfig", "CriticConfig", "DistillationConfig", "DistributionConfig", "ExpertConfig",
         "MultiHypothesisDistillationConfig", "PPOConfig", "RunnerConfig", "ScheduledDistillationConfig", "TrainConfig",
-        "load_train_config", "migrate_flat_algorithm", "rsl_rl_train_cfg",
+        "load_train_config", "migrate_flat_algorithm",
     ),
+    "rsl_rl_cfg": ("rsl_rl_train_cfg",),
     "checks": ("check_checkpoint", "check_device", "check_files", "read_checkpoint_infos"),
     "cli": ("build_parser", "config_from_args", "main", "overrides_from_args"),
     "runner": (

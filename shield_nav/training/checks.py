@@ -10,7 +10,12 @@ from __future__ import annotations
 import os
 
 from envs.config import ConfigError
-from shield_nav.training.config import CHECKPOINT_FORMAT_VERSION, TrainConfig, migrate_flat_algorithm
+from shield_nav.training.config import (
+    CHECKPOINT_FORMAT_VERSION,
+    TrainConfig,
+    migrate_class_paths,
+    migrate_flat_algorithm,
+)
 
 __all__ = ["check_checkpoint", "check_device", "check_files", "in_run_folder", "read_checkpoint_infos"]
 
@@ -93,4 +98,6 @@ def read_checkpoint_infos(path: str | os.PathLike, what: str = "checkpoint") -> 
         # Version 2 types runner.algorithm by its class (training.config.ALGORITHM_CONFIGS); version 1 stored the
         # flat section with every algorithm's keys.
         infos = {**infos, "config": migrate_flat_algorithm(infos["config"], str(path)), "format_version": 2}
+    if isinstance(infos.get("config"), dict):  # checkpoints written before the layout by role name old modules
+        infos = {**infos, "config": migrate_class_paths(infos["config"])}
     return infos

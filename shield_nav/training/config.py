@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import inspect
 import math
 import os
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
-from envs.config import ConfigError, load_config, require, select_raw, to_dict
+from envs.config import ConfigError, load_config, require, select_raw
 from envs.navigation import NavConfig
-from shield_nav.baselines import EXPERTS, BaselineConfig, OracleConfig
-from shield_nav.shield import ShieldConfig
+from shield_nav.algorithms import ANCHOR_TARGETS
+from shield_nav.algorithms.baselines import EXPERTS, BaselineConfig, OracleConfig
+from shield_nav.safety.shield import ShieldConfig
 
 CHECKPOINT_FORMAT_VERSION = 2
 """Version of the ``infos`` layout inside ``model_<it>.pt``; bump it and add a migration when it changes."""
@@ -39,9 +40,9 @@ class DistributionConfig:
 
 @dataclass
 class ActorConfig:
-    """The actor model (rsl-rl ``actor`` dict); the keys are :class:`shield_nav.models.DepthGRUModel` arguments."""
+    """The actor model (rsl-rl ``actor`` dict); its keys are :class:`~shield_nav.policies.models.DepthGRUModel`'s."""
 
-    class_name: str = "shield_nav.models:DepthGRUModel"
+    class_name: str = "shield_nav.policies.models:DepthGRUModel"
     """Model class, ``module:Class``."""
     hidden_dims: list[int] = field(default_factory=lambda: [128, 64])
     """MLP head hidden sizes after the GRU."""
@@ -65,7 +66,7 @@ class ActorConfig:
     """Stacked GRU layers."""
     num_hypotheses: int = 1
     """Candidate actions of the head; ``K > 1`` acts with the best-scored one and needs
-    ``algorithm.class_name: "shield_nav.distillation:MultiHypothesisDistillation"`` (docs/training.md)."""
+    ``algorithm.class_name: "shield_nav.algorithms.distillation:MultiHypothesisDistillation"`` (docs/training.md)."""
     distribution_cfg: DistributionConfig = field(default_factory=DistributionConfig)
     """Output distribution."""
 
@@ -99,9 +100,9 @@ class AlgorithmConfig:
     """
 
     class_name: str = "PPO"
-    """Algorithm class: ``PPO`` or ``shield_nav.anchored:AnchoredPPO``; with ``runner.class_name:
-    DistillationRunner`` rsl-rl's ``Distillation``, ``shield_nav.distillation:ScheduledDistillation`` or, for a
-    student with ``actor.num_hypotheses > 1``, ``shield_nav.distillation:MultiHypothesisDistillation``."""
+    """Algorithm class: ``PPO`` or ``shield_nav.algorithms.anchored:AnchoredPPO``; with ``runner.class_name:
+    DistillationRunner`` rsl-rl's ``Distillation``, ``shield_nav.algorithms.distillation:ScheduledDistillation`` or, for
+    a student with ``actor.num_hypotheses > 1``, ``shield_nav.algorithms.distillation:MultiHypothesisDistillation``."""
     num_learning_epochs: int = 4
     """Passes over each rollout."""
     learning_rate: float = 3.0e-4
@@ -138,9 +139,9 @@ class PPOConfig(AlgorithmConfig):
 
 @dataclass
 class AnchoredPPOConfig(PPOConfig):
-    """``shield_nav.anchored:AnchoredPPO``: PPO plus a term holding the actor near a reference."""
+    """``shield_nav.algorithms.anchored:AnchoredPPO``: PPO plus a term holding the actor near a reference."""
 
-    class_name: str = "shield_nav.anchored:AnchoredPPO"
+    class_name: str = "shield_nav.algorithms.anchored:AnchoredPPO"
     """See :class:`AlgorithmConfig`."""
     anchor_coef: float = 0.0
     """Weight of the anchor term, the distance of the actor's mean action from the reference's on the same states
@@ -169,9 +170,9 @@ class DistillationConfig(AlgorithmConfig):
 
 @dataclass
 class ScheduledDistillationConfig(DistillationConfig):
-    """``shield_nav.distillation:ScheduledDistillation``: distillation with a rate schedule and rollout replay."""
+    """``ScheduledDistillation`` (:mod:`shield_nav.algorithms.distillation`): a rate schedule and rollout replay."""
 
-    class_name: str = "shield_nav.distillation:ScheduledDistillation"
+    class_name: str = "shield_nav.algorithms.distillation:ScheduledDistillation"
     """See :class:`AlgorithmConfig`."""
     lr_schedule: str = "constant"
     """``constant`` (rsl-rl's) or ``cosine`` from ``learning_rate`` to ``lr_final`` over ``lr_schedule_iterations``
@@ -189,12 +190,12 @@ class ScheduledDistillationConfig(DistillationConfig):
 
 @dataclass
 class MultiHypothesisDistillationConfig(ScheduledDistillationConfig):
-    """``shield_nav.distillation:MultiHypothesisDistillation``: the winner-takes-all loss.
+    """``shield_nav.algorithms.distillation:MultiHypothesisDistillation``: the winner-takes-all loss.
 
     For students with ``actor.num_hypotheses > 1``.
     """
 
-    class_name: str = "shield_nav.distillation:MultiHypothesisDistillation"
+    class_name: str = "shield_nav.algorithms.distillation:MultiHypothesisDistillation"
     """See :class:`AlgorithmConfig`."""
     wta_epsilon: float = 0.05
     """Share of the loss spread over the losing candidates, in [0, 1)."""
@@ -202,15 +203,12 @@ class MultiHypothesisDistillationConfig(ScheduledDistillationConfig):
     """Weight of the cross-entropy that trains the candidate scores."""
 
 
-MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.distillation:MultiHypothesisDistillation"
+MULTI_HYPOTHESIS_ALGORITHM = "shield_nav.algorithms.distillation:MultiHypothesisDistillation"
 """``runner.algorithm.class_name`` of a student with ``actor.num_hypotheses > 1``."""
-SCHEDULED_ALGORITHM = "shield_nav.distillation:ScheduledDistillation"
+SCHEDULED_ALGORITHM = "shield_nav.algorithms.distillation:ScheduledDistillation"
 """``runner.algorithm.class_name`` of a single-head student with a learning-rate schedule."""
-ANCHORED_ALGORITHM = "shield_nav.anchored:AnchoredPPO"
+ANCHORED_ALGORITHM = "shield_nav.algorithms.anchored:AnchoredPPO"
 """``runner.algorithm.class_name`` of PPO fine-tuning anchored to its ``runner.actor_init`` actor."""
-ANCHOR_TARGETS = ("actor_init", "expert")
-"""What the actor is held near: its own starting weights, or the scripted expert's action (observation ``expert``).
-Defined here, not in :mod:`shield_nav.anchored`, so that checking a config does not import torch."""
 ALGORITHM_CONFIGS: dict[str, type[AlgorithmConfig]] = {
     "PPO": PPOConfig,
     ANCHORED_ALGORITHM: AnchoredPPOConfig,
@@ -230,13 +228,13 @@ class ExpertConfig:
     """A scripted privileged expert: the teacher of oracle DAgger, or the reference of kickstarting PPO."""
 
     kind: str = ""
-    """``oracle``: the geodesic-descent oracle of :mod:`shield_nav.baselines` labels every state the student visits
-    (with ``teacher.class_name: "shield_nav.models:ExpertTeacher"`` and ``obs_groups.teacher: [expert]``); no
-    ``teacher_checkpoint`` is needed; with ``AnchoredPPO`` and ``algorithm.anchor_target: expert``, the actions
-    the PPO actor is held near. Empty: the trained teacher of ``teacher_checkpoint``."""
+    """``oracle``: the geodesic-descent oracle of :mod:`shield_nav.algorithms.baselines` labels every state the student
+    visits (with ``teacher.class_name: "shield_nav.policies.models:ExpertTeacher"`` and ``obs_groups.teacher:
+    [expert]``); no ``teacher_checkpoint`` is needed; with ``AnchoredPPO`` and ``algorithm.anchor_target: expert``, the
+    actions the PPO actor is held near. Empty: the trained teacher of ``teacher_checkpoint``."""
     params: BaselineConfig = field(default_factory=_default_expert_params)
-    """The expert's parameters (:class:`shield_nav.baselines.BaselineConfig`; ``oracle.episode_goal`` defaults to
-    true here: descend the field of the episode's goal point)."""
+    """The expert's parameters (:class:`shield_nav.algorithms.baselines.BaselineConfig`; ``oracle.episode_goal``
+    defaults to true here: descend the field of the episode's goal point)."""
     flown_share: float = 0.0
     """DAgger's mixing share (Ross et al. 2011's beta), in [0, 1]: each env is drawn at every episode start, with
     this probability, to fly the episode on the expert's labels instead of the student's actions, which keeps the
@@ -335,7 +333,7 @@ class TrainConfig:
     of the shielded flight, which its expert labels (:mod:`shield_nav.training.shield_loop`). False: the policy alone
     (the paper's training)."""
     shield: ShieldConfig = field(default_factory=ShieldConfig)
-    """The shield of ``shield_in_loop`` (:class:`shield_nav.shield.ShieldConfig`; defaults = the evaluation's)."""
+    """The shield of ``shield_in_loop`` (:class:`~shield_nav.safety.shield.ShieldConfig`; the evaluation's defaults)."""
     shield_penalty: float = 0.0
     """Intervention penalty of ``shield_in_loop``: each step's reward loses this times the shield's correction
     ``|a_safe - a_raw|`` [1 per m/s^2] (logged as ``reward/shield``), so the policy is paid for flying what the
@@ -453,7 +451,7 @@ class TrainConfig:
             require(not distill or r.obs_groups.get("teacher") == ["expert"], f"{prefix}runner.obs_groups.teacher",
                     f"must be [expert] with runner.expert.kind {r.expert.kind!r}")  # fmt: skip
             require(not distill or r.teacher.class_name.endswith("ExpertTeacher"), f"{prefix}runner.teacher.class_name",
-                    "must be 'shield_nav.models:ExpertTeacher' with a scripted expert")  # fmt: skip
+                    "must be 'shield_nav.policies.models:ExpertTeacher' with a scripted expert")  # fmt: skip
         share = r.expert.flown_share
         require(isinstance(share, (int, float)) and math.isfinite(share) and 0 <= share <= 1,
                 f"{prefix}runner.expert.flown_share", f"must be in [0, 1], got {share!r}")  # fmt: skip
@@ -481,6 +479,8 @@ def load_train_config(
         files = list(files)
     base = TrainConfig() if base is None else base
     name = select_raw("runner.algorithm.class_name", files, overrides, default=base.runner.algorithm.class_name)
+    if (new := moved_class_path(name)) is not None:
+        raise ConfigError(f"config key 'runner.algorithm.class_name': {name!r} names a module that moved; use {new!r}")
     if name not in ALGORITHM_CONFIGS:
         raise ConfigError(f"config key 'runner.algorithm.class_name': unknown algorithm {name!r}; known: "
                           f"{sorted(ALGORITHM_CONFIGS)}")  # fmt: skip
@@ -492,7 +492,55 @@ def load_train_config(
                   if f.name != "class_name" and hasattr(old, f.name)}  # fmt: skip
         base = copy.deepcopy(base)
         base.runner.algorithm = schema(**shared)
-    return load_config(TrainConfig, files=files, overrides=overrides, base=base)
+    cfg = load_config(TrainConfig, files=files, overrides=overrides, base=base)
+    _refuse_moved_class_paths(cfg)
+    return cfg
+
+
+MOVED_MODULES = {
+    "shield_nav.models": "shield_nav.policies.models",
+    "shield_nav.anchored": "shield_nav.algorithms.anchored",
+    "shield_nav.distillation": "shield_nav.algorithms.distillation",
+}
+"""Modules whose classes configs name by path (``module:Class``), moved when the package was laid out by role on
+2026-12-06: old path -> new path."""
+
+
+def moved_class_path(value: Any) -> str | None:
+    """The current path of a ``module:Class`` string that names a moved module, else None."""
+    if isinstance(value, str) and ":" in value:
+        module, _, name = value.partition(":")
+        if module in MOVED_MODULES:
+            return f"{MOVED_MODULES[module]}:{name}"
+    return None
+
+
+def migrate_class_paths(config: Any) -> Any:
+    """A stored config (a checkpoint's, a pipeline record's) with every moved ``module:Class`` path made current.
+
+    The classes are the same; only their modules moved (:data:`MOVED_MODULES`). Returns a new object.
+    """
+    if isinstance(config, dict):
+        return {k: migrate_class_paths(v) for k, v in config.items()}
+    if isinstance(config, list):
+        return [migrate_class_paths(v) for v in config]
+    return moved_class_path(config) or config
+
+
+def _refuse_moved_class_paths(cfg: TrainConfig) -> None:
+    """A config written by hand that names a moved module: an error naming the key and the current path."""
+
+    def walk(node: Any, key: str) -> None:
+        if dataclasses.is_dataclass(node):
+            for f in dataclasses.fields(node):
+                walk(getattr(node, f.name), f"{key}.{f.name}" if key else f.name)
+        elif isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{key}.{k}")
+        elif (new := moved_class_path(node)) is not None:
+            raise ConfigError(f"config key '{key}': {node!r} names a module that moved; use {new!r}")
+
+    walk(cfg, "")
 
 
 def migrate_flat_algorithm(config: dict, source: str = "stored config") -> dict:
@@ -521,69 +569,3 @@ def migrate_flat_algorithm(config: dict, source: str = "stored config") -> dict:
             warnings.warn(f"{source}: runner.algorithm.{key} = {value!r} was not taken by {algo.get('class_name')!r} "
                           "when this run trained; dropped", stacklevel=2)  # fmt: skip
     return out
-
-
-def _constructor_names(class_name: str) -> set[str] | None:
-    """Parameter names ``class_name``'s constructor chain takes (None: it takes any keyword).
-
-    A subclass that forwards ``**kwargs`` to its parent (shield_nav.anchored.AnchoredPPO -> PPO) takes what the first
-    class up its MRO without ``**kwargs`` takes; if every ``__init__`` takes ``**kwargs``, anything is passed on.
-    """
-    from rsl_rl.utils import resolve_callable
-
-    names: set[str] = set()
-    for klass in resolve_callable(class_name).__mro__:
-        if "__init__" not in vars(klass):
-            continue
-        params = inspect.signature(vars(klass)["__init__"]).parameters
-        names.update(params)
-        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-            return names
-    return None
-
-
-def _accepted(class_name: str, kwargs: dict) -> dict:
-    """``kwargs`` restricted to what ``class_name``'s constructor takes (all of them if it takes ``**kwargs``)."""
-    names = _constructor_names(class_name)
-    if names is None:
-        return kwargs
-    return {k: v for k, v in kwargs.items() if k in names or k == "class_name"}
-
-
-def rsl_rl_train_cfg(cfg: TrainConfig) -> dict:
-    """The plain ``train_cfg`` dict the rsl-rl runner takes (a fresh copy: rsl-rl may mutate it).
-
-    PPO gets ``actor``/``critic``; distillation gets ``student`` (the ``actor`` section: the deployable depth model)
-    and ``teacher``. Model and algorithm keys their classes do not take are dropped.
-    """
-    d = to_dict(cfg.runner)
-    for key in (
-        "init_at_random_ep_len",
-        "class_name",
-        "teacher_checkpoint",
-        "student_init",
-        "expert",
-        "actor_init",
-        "critic_warmup_iterations",
-        "average_iterations",
-    ):
-        d.pop(key)
-    teacher = d.pop("teacher")
-    if cfg.runner.class_name == "DistillationRunner":
-        d["student"] = d.pop("actor")
-        d["teacher"] = teacher
-        d.pop("critic")
-    if d["algorithm"].get("lr_schedule_iterations") == 0:
-        d["algorithm"]["lr_schedule_iterations"] = cfg.max_iterations
-    if d["algorithm"]["class_name"] in (SCHEDULED_ALGORITHM, MULTI_HYPOTHESIS_ALGORITHM):
-        d["algorithm"]["seed"] = cfg.seed  # the draw of replayed rollouts
-    for key in ("actor", "critic", "student", "teacher"):  # the algorithm section is typed by its class already
-        if key in d:
-            d[key] = _accepted(d[key]["class_name"], d[key])
-    d["experiment_name"] = cfg.experiment_name
-    d["run_name"] = cfg.name
-    d["seed"] = cfg.seed
-    return copy.deepcopy(d)
-
-
-# ------------------------------------------------------------------------------------------------ runner

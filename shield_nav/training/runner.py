@@ -22,15 +22,11 @@ from rsl_rl.env import VecEnv
 from rsl_rl.runners import DistillationRunner, OnPolicyRunner
 
 from envs.config import ConfigError, to_dict, to_yaml
-from shield_nav.baselines import EXPERTS
+from shield_nav.algorithms.baselines import EXPERTS
 from shield_nav.provenance import cpu_model, cpu_simd, package_versions
 from shield_nav.training.checks import check_files, in_run_folder
-from shield_nav.training.config import (
-    CHECKPOINT_FORMAT_VERSION,
-    REPO_ROOT,
-    TrainConfig,
-    rsl_rl_train_cfg,
-)
+from shield_nav.training.config import CHECKPOINT_FORMAT_VERSION, REPO_ROOT, TrainConfig
+from shield_nav.training.rsl_rl_cfg import rsl_rl_train_cfg
 
 
 class _VersionedSave:
@@ -213,11 +209,11 @@ def _init_student(runner: Any, path: str, device: str) -> dict:
     """Load a checkpoint's student weights into the runner's student; return the checkpoint's ``infos``.
 
     A single-head student initialises a multi-hypothesis one: every candidate starts as its head
-    (:func:`shield_nav.models.expand_single_head`), so training starts from the single-head policy. A student whose
-    state has more values (a new observation group after ``state``, e.g. ``memory``) starts from one with fewer
-    through zero weights on the new values (:func:`shield_nav.models.expand_state_inputs`).
+    (:func:`shield_nav.policies.models.expand_single_head`), so training starts from the single-head policy. A student
+    whose state has more values (a new observation group after ``state``, e.g. ``memory``) starts from one with fewer
+    through zero weights on the new values (:func:`shield_nav.policies.models.expand_state_inputs`).
     """
-    from shield_nav.models import expand_single_head
+    from shield_nav.policies.models import expand_single_head
 
     student = runner.alg._raw_student
     ckpt = torch.load(path, map_location=device, weights_only=False)
@@ -280,11 +276,12 @@ def _widened(weights: dict, model: Any, what: str) -> dict:
     """``weights`` for ``model``, widened where the model is wider.
 
     A new group after ``state`` (e.g. ``memory`` or ``clock``) enters through zero weights
-    (:func:`shield_nav.models.expand_state_inputs`); a wider depth encoder (more channels or image features) keeps
-    the old filters and reads its new ones through zero weights (:func:`shield_nav.models.widen_encoder`). Either
-    way the model acts as the one it starts from. Otherwise ``weights`` unchanged.
+    (:func:`shield_nav.policies.models.expand_state_inputs`); a wider depth encoder (more channels or image features)
+    keeps the old filters and reads its new ones through zero weights
+    (:func:`shield_nav.policies.models.widen_encoder`). Either way the model acts as the one it starts from. Otherwise
+    ``weights`` unchanged.
     """
-    from shield_nav.models import encoder_is_wider, encoder_widths, expand_state_inputs, widen_encoder
+    from shield_nav.policies.models import encoder_is_wider, encoder_widths, expand_state_inputs, widen_encoder
 
     mean = weights.get("obs_normalizer._mean")
     if mean is not None and hasattr(model, "obs_dim") and mean.shape[-1] < model.obs_dim:
@@ -305,7 +302,7 @@ def _check_encoder_widths(cfg: TrainConfig, resume: str | os.PathLike | None) ->
     The widths are read from the checkpoint's convolution and projection weights: output channels per layer, then
     the image features. A narrower checkpoint is widened at load (:func:`_widened`); a wider one cannot be.
     """
-    from shield_nav.models import encoder_widths
+    from shield_nav.policies.models import encoder_widths
 
     path = cfg.runner.student_init or cfg.runner.actor_init
     if resume is not None or not path or "cnn_channels" not in dataclasses.asdict(cfg.runner.actor):
@@ -568,7 +565,8 @@ def train(
         runner.logger.stop_logging_writer()
         if runner.logger.writer is not None and hasattr(runner.logger.writer, "close"):
             runner.logger.writer.close()
-        from shield_nav.models import DepthGRUModel, export_policy
+        from shield_nav.policies.export import export_policy
+        from shield_nav.policies.models import DepthGRUModel
 
         policy = runner.alg.get_policy()
         if isinstance(policy, DepthGRUModel):
@@ -576,9 +574,9 @@ def train(
                 paths = export_policy(policy, os.path.join(run_dir, "exported"))
             except Exception:
                 # The checkpoint is on disk. A known cause: TorchScript re-reads the model's source file, so editing
-                # shield_nav/models.py while a run trains can break the run's final export (not its weights).
+                # shield_nav/policies/models.py while a run trains can break the run's final export (not its weights).
                 print(f"[train] the export failed; model_{it}.pt is saved. Re-export it with: python -m "
-                      f"shield_nav.package {os.path.join(run_dir, f'model_{it}.pt')} --name <policy name>",
+                      f"shield_nav.tools.package {os.path.join(run_dir, f'model_{it}.pt')} --name <policy name>",
                       file=sys.stderr, flush=True)  # fmt: skip
                 raise
             _write_export_source(run_dir, it)

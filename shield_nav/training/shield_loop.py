@@ -1,7 +1,7 @@
 """The HOCBF shield in the training loop: the learner's rollouts fly the deployed system (policy behind the shield).
 
 ``train.py`` builds it when the train config sets ``shield_in_loop: true`` (with the shield's own keys under
-``shield:``, :class:`shield_nav.shield.ShieldConfig`) and hands it to :class:`envs.rsl_rl.RslRlVecEnv` as its
+``shield:``, :class:`shield_nav.safety.shield.ShieldConfig`) and hands it to :class:`envs.rsl_rl.RslRlVecEnv` as its
 ``command_filter``. Each step the actions are mapped to commands, filtered exactly as the evaluation harness filters
 the Full row (``shield_nav/evaluation/rollout.py``: the sensor's depth image, the body attitude it was taken at, the
 env-local position and the velocity), and the filtered commands are flown. PPO keeps the sampled action as its action
@@ -15,7 +15,7 @@ import numpy as np
 
 from envs.camera import CameraConfig
 from envs.navigation import NavigationEnv
-from shield_nav.shield import HOCBFShield, ShieldConfig
+from shield_nav.safety.shield import HOCBFShield, ShieldConfig
 
 
 class ShieldInLoop:

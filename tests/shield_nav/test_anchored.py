@@ -1,4 +1,4 @@
-"""AnchoredPPO: PPO fine-tuning with a penalty on the actor's drift from a frozen reference (shield_nav.anchored)."""
+"""AnchoredPPO (shield_nav.algorithms.anchored): PPO with a penalty on the actor's drift from a frozen reference."""
 
 import copy
 import os
@@ -13,8 +13,8 @@ from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from envs.config import ConfigError
-from shield_nav.anchored import ANCHOR_KEY, AnchoredPPO, _AnchorGradient, anchor_loss
-from shield_nav.models import DepthGRUModel
+from shield_nav.algorithms.anchored import ANCHOR_KEY, AnchoredPPO, _AnchorGradient, anchor_loss
+from shield_nav.policies.models import DepthGRUModel
 from shield_nav.training import ANCHORED_ALGORITHM, load_train_config, rsl_rl_train_cfg
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

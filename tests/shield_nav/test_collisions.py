@@ -8,7 +8,7 @@ import pytest
 
 from envs.scenes import Box, Capsule, Cylinder, Scene, Sphere, make_scene
 from envs.scenes.sdf import union_sdf
-from shield_nav.collisions import (
+from shield_nav.tools.collisions import (
     approach_bearing,
     bearings,
     breakdown,

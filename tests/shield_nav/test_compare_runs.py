@@ -2,7 +2,7 @@
 
 from torch.utils.tensorboard import SummaryWriter
 
-from shield_nav.compare_runs import compare, read_csv, read_events, smooth, write_csv
+from shield_nav.tools.compare_runs import compare, read_csv, read_events, smooth, write_csv
 
 
 def _fake_run(path, success):

@@ -14,9 +14,9 @@ from envs.navigation import NavigationEnv
 from envs.navigation import interface as I
 from envs.navigation.config import ActionConfig
 from shield_nav.deploy import ShieldedPilot, fly
-from shield_nav.escape import EscapeConfig, StallEscape
 from shield_nav.evaluation.rollout import flown_scene, nav_config, sample_trial, trial_seed
-from shield_nav.shield import ShieldConfig
+from shield_nav.safety.escape import EscapeConfig, StallEscape
+from shield_nav.safety.shield import ShieldConfig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 FULL = os.path.join(ROOT, "checkpoints", "full")

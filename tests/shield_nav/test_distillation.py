@@ -12,8 +12,13 @@ from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from envs.config import ConfigError
-from shield_nav.distillation import MultiHypothesisDistillation, ScheduledDistillation, scheduled_lr, wta_loss
-from shield_nav.models import DepthGRUModel, ExpertTeacher
+from shield_nav.algorithms.distillation import (
+    MultiHypothesisDistillation,
+    ScheduledDistillation,
+    scheduled_lr,
+    wta_loss,
+)
+from shield_nav.policies.models import DepthGRUModel, ExpertTeacher
 from shield_nav.training import MULTI_HYPOTHESIS_ALGORITHM, SCHEDULED_ALGORITHM, load_train_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -282,7 +287,7 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
 
     import onnxruntime as ort
 
-    from shield_nav.package import actor_from_checkpoint
+    from shield_nav.tools.package import actor_from_checkpoint
 
     # A single-head student to start from (none ships in the release): one DAgger iteration from the oracle.
     single = str(tmp_path / "single")
@@ -332,7 +337,7 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
 
 
 def test_imitation_gap_metrics_by_hand():
-    from shield_nav.imitation import gap_metrics
+    from shield_nav.tools.imitation import gap_metrics
 
     # Four samples. Roll (dim 1): the expert turns hard on samples 0-2 (|a| > 0.3): the student turns the other way
     # on sample 0, by less than half on sample 1, fully on sample 2.
@@ -357,7 +362,7 @@ def test_imitation_gap_metrics_by_hand():
 
 
 def test_imitation_selection_metrics_by_hand():
-    from shield_nav.imitation import selection_metrics
+    from shield_nav.tools.imitation import selection_metrics
 
     # Two envs, three steps, two candidates of one action value. Env 1's episode ends at step 0, so its change of
     # candidate into step 1 is not a switch.
@@ -392,7 +397,7 @@ def test_imitation_cli_on_the_committed_student():
     import subprocess
     import sys
 
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.tools.imitation", "checkpoints/student",
                           "--steps", "20", "--num-envs", "4", "--level", "2", "--json"],
                          cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
@@ -414,11 +419,11 @@ def test_imitation_cli_on_the_committed_student():
     assert sel["nearest_mse"] <= min(sel["chosen_mse"], sel["uniform_mse"])
     assert 0.0 <= sel["nearest_share"] <= 1.0 and 0.0 <= sel["switch_rate"] <= 1.0
     assert sum(sel["share"]) == pytest.approx(1.0)
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.tools.imitation", "checkpoints/student",
                           "--level", "99"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "level must be in [0, 16)" in res.stderr and "Traceback" not in res.stderr
     # An evaluation family is refused by name (its scenes are held out), before any flight.
-    res = subprocess.run([sys.executable, "-m", "shield_nav.imitation", "checkpoints/student",
+    res = subprocess.run([sys.executable, "-m", "shield_nav.tools.imitation", "checkpoints/student",
                           "--family", "benchmark"], cwd=REPO, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert res.returncode == 2 and "must be a training family" in res.stderr and "'benchmark'" in res.stderr
 
@@ -427,9 +432,9 @@ def test_imitation_flies_the_requested_level_when_the_checkpoint_trained_without
     # A student trained with the curriculum off (scenes sampled uniformly per episode) used to be measured on every
     # scene of its list whatever --level said: resets ignored the level. Every episode must be on scene indices[k]
     # (4 envs on 3 scenes all land on the requested one by chance with probability 1/81).
-    import shield_nav.package as package
+    import shield_nav.tools.package as package
     import shield_nav.training as training
-    from shield_nav.imitation import measure
+    from shield_nav.tools.imitation import measure
 
     real_load, real_make = package.actor_from_checkpoint, training.make_env
 

@@ -12,9 +12,9 @@ import torch
 from tensordict import TensorDict
 
 from shield_nav import evaluation as E
-from shield_nav.ensemble import ExportedEnsemble, build_ensemble, member_checkpoint
-from shield_nav.models import DepthGRUModel
-from shield_nav.package import actor_from_checkpoint
+from shield_nav.policies.models import DepthGRUModel
+from shield_nav.tools.ensemble import ExportedEnsemble, build_ensemble, member_checkpoint
+from shield_nav.tools.package import actor_from_checkpoint
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Three real trained depth actors of one observation layout and one training env (the shipped release).
@@ -96,8 +96,8 @@ def test_ensemble_bad_input_is_named(tmp_path):
     (tmp_path / "model_2.pt").write_bytes(b"")
     (tmp_path / "model_10.pt").write_bytes(b"")
     assert member_checkpoint(str(tmp_path)) == str(tmp_path / "model_10.pt")  # numerically latest, not by name
-    res = subprocess.run([sys.executable, "-m", "shield_nav.ensemble", MEMBERS[0], "--out", str(tmp_path / "o")],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    cmd = [sys.executable, "-m", "shield_nav.tools.ensemble", MEMBERS[0], "--out", str(tmp_path / "o")]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert res.returncode == 2 and "at least two members, got 1" in res.stderr
     assert not (tmp_path / "o").exists()
 

@@ -1,5 +1,5 @@
-"""The stall escape (shield_nav/escape.py): its timing, side choice and heading-frame goal input against hand-worked
-cases, bad input, and a real evaluation row that flies the shipped Full policy with it."""
+"""The stall escape (shield_nav/safety/escape.py): its timing, side choice and heading-frame goal input against
+hand-worked cases, bad input, and a real evaluation row that flies the shipped Full policy with it."""
 
 import dataclasses
 import math
@@ -10,7 +10,8 @@ import pytest
 from envs.config import ConfigError
 from envs.navigation.env import STATE_DIM
 from shield_nav import evaluation as E
-from shield_nav.escape import GOAL_COLUMNS, ROT_COLUMNS, CameraMap, EscapeConfig, StallEscape
+from shield_nav.safety.camera_map import CameraMap
+from shield_nav.safety.escape import GOAL_COLUMNS, ROT_COLUMNS, EscapeConfig, StallEscape
 
 DT = 0.01
 

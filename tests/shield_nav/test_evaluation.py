@@ -19,10 +19,10 @@ import pytest
 import yaml
 
 from shield_nav import evaluation as E
-from shield_nav.baselines import TrackingConfig, accel_to_command, free_distances
+from shield_nav.algorithms.baselines import TrackingConfig, accel_to_command, free_distances
 from shield_nav.evaluation.outcomes import read_outcomes
 from shield_nav.provenance import cpu_simd
-from shield_nav.shield import ShieldConfig
+from shield_nav.safety.shield import ShieldConfig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TINY = [
@@ -196,7 +196,8 @@ def export_fresh_policy(out_dir, state_dim=21, train_speeds=None):
     torch = pytest.importorskip("torch")
     from tensordict import TensorDict
 
-    from shield_nav.models import DepthGRUModel, export_policy
+    from shield_nav.policies.export import export_policy
+    from shield_nav.policies.models import DepthGRUModel
 
     torch.manual_seed(0)
     obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, state_dim)}, [2])
@@ -313,7 +314,7 @@ def test_tiny_run_table_outputs_resume_and_determinism(tmp_path, monkeypatch, ca
     assert [{k: r[k] for k in pick} for r in kept] == [{k: t[k] for k in pick} for t in trials]
     assert [r["metrics"]["flew_over"] for r in kept] == [t["metrics"]["flew_over"] for t in trials]
     # Each trial's max_turns is what `collisions --circling` reads back from its unit file's recorded points.
-    from shield_nav.collisions import max_turns, point_times
+    from shield_nav.tools.collisions import max_turns, point_times
 
     units = []
     for path in sorted(glob.glob(os.path.join(out1, "units", "*.json"))):
@@ -731,7 +732,8 @@ def test_policy_with_a_memory_input_reads_its_groups_and_the_env_section_from_it
     torch = pytest.importorskip("torch")
     from tensordict import TensorDict
 
-    from shield_nav.models import DepthGRUModel, export_policy
+    from shield_nav.policies.export import export_policy
+    from shield_nav.policies.models import DepthGRUModel
 
     torch.manual_seed(0)
     obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21), "memory": torch.rand(2, 8)}, [2])
@@ -770,7 +772,8 @@ def test_policy_with_a_clock_input_gets_the_clock_of_the_evaluations_own_time_li
     torch = pytest.importorskip("torch")
     from tensordict import TensorDict
 
-    from shield_nav.models import DepthGRUModel, export_policy
+    from shield_nav.policies.export import export_policy
+    from shield_nav.policies.models import DepthGRUModel
 
     torch.manual_seed(0)
     obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21), "clock": torch.rand(2, 1)}, [2])
@@ -806,7 +809,8 @@ def test_multi_hypothesis_policy_gives_its_candidates_in_score_order_and_flies_b
     torch = pytest.importorskip("torch")
     from tensordict import TensorDict
 
-    from shield_nav.models import DepthGRUModel, export_policy
+    from shield_nav.policies.export import export_policy
+    from shield_nav.policies.models import DepthGRUModel
 
     torch.manual_seed(0)
     obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21)}, [2])

@@ -14,7 +14,7 @@ from tensordict import TensorDict
 from envs.config import ConfigError
 from envs.navigation import NavigationEnv
 from envs.rsl_rl import RslRlVecEnv
-from shield_nav.baselines import (
+from shield_nav.algorithms.baselines import (
     BaselineConfig,
     EuclideanOracleController,
     GoalSeeker,
@@ -23,7 +23,7 @@ from shield_nav.baselines import (
     OracleExpert,
     make_baseline,
 )
-from shield_nav.models import ExpertTeacher
+from shield_nav.policies.models import ExpertTeacher
 from shield_nav.training import load_train_config, make_env, make_runner
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -108,7 +108,7 @@ def test_the_camera_map_experts_field_is_the_path_length_round_what_its_camera_m
     hypot(7.9, 3.4) - 2 = 15.3 m, and the way through (10.1, 9.2) bounds it by hypot(8, 4.1) + hypot(7.9, 4.1) - 2 =
     15.9 m (+ the grid stencil's error)."""
     from envs.camera.config import CameraConfig
-    from shield_nav.escape import CameraMap
+    from shield_nav.safety.camera_map import CameraMap
 
     planner = make_baseline("expert_cammap", BaselineConfig())
     assert planner.reads_depth and planner.privileged
@@ -135,7 +135,7 @@ def test_the_camera_map_experts_narrow_field_keeps_to_a_corridor_its_inflated_ma
     from types import SimpleNamespace
 
     from envs.camera.config import CameraConfig
-    from shield_nav.escape import CameraMap
+    from shield_nav.safety.camera_map import CameraMap
 
     planner = make_baseline("expert_cammap", BaselineConfig())
     ec = planner.ec
@@ -195,7 +195,7 @@ def test_the_camera_map_expert_descends_each_flights_own_field_and_needs_the_ima
 def test_the_map_planner_plans_only_the_flights_it_is_given_and_a_new_one_at_once():
     """``commands(env, among)``: at a replan step only the flights in ``among`` get a plan (a primitive, a map target);
     a flight added between replan steps is planned at that call; every flight's image is mapped all along."""
-    from shield_nav.escape import CameraMap
+    from shield_nav.safety.camera_map import CameraMap
 
     env = NavigationEnv(num_envs=3, **SMALL)
     env.reset(seed=3)
@@ -268,8 +268,8 @@ def test_the_camera_map_expert_forgets_a_restarted_envs_map_and_plans_it_on_its_
     """``planner_cammap`` as a DAgger expert: after steps that mapped every env, env 1 restarts on its own; at the next
     label its map is exactly its new first image's cells (an independent map of that image alone), the other envs
     keep theirs, and the field its label descends is the one over that map (read through the kernel's lookup)."""
-    from shield_nav.baselines import EXPERTS
-    from shield_nav.escape import CameraMap
+    from shield_nav.algorithms.baselines import EXPERTS
+    from shield_nav.safety.camera_map import CameraMap
 
     env = NavigationEnv(num_envs=3, **SMALL)
     env.reset(seed=3)

@@ -23,7 +23,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 def _export(out_dir, num_hypotheses=1, seed=0):
     from tensordict import TensorDict
 
-    from shield_nav.models import DepthGRUModel, export_policy
+    from shield_nav.policies.export import export_policy
+    from shield_nav.policies.models import DepthGRUModel
 
     torch.manual_seed(seed)
     obs = TensorDict({"depth": torch.rand(2, 1, 60, 100), "state": torch.randn(2, 21)}, [2])
@@ -162,8 +163,8 @@ def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
     """rsl-rl's MLP puts one activation module in each of its slots; ``named_children`` yields a shared module once,
     which would drop the second ELU. The actor read from an eager export has an ELU after each hidden layer, as the
     TorchScript file of the same weights has."""
-    from shield_nav.models import ExportedDepthGRU
-    from shield_nav.package import actor_from_checkpoint
+    from shield_nav.policies.export import ExportedDepthGRU
+    from shield_nav.tools.package import actor_from_checkpoint
 
     model, _, _ = actor_from_checkpoint(os.path.join(ROOT, "checkpoints", "student", "model.pt"))
     module = ExportedDepthGRU(model)

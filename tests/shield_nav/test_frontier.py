@@ -5,7 +5,7 @@ import json
 import pytest
 
 from shield_nav.evaluation import wilson_interval
-from shield_nav.frontier import frontier_point, main
+from shield_nav.tools.frontier import frontier_point, main
 
 
 def _write(root, row, trials, speed=7.0, scene=0):

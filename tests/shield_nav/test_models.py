@@ -12,13 +12,13 @@ from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
-from shield_nav.models import (
+from shield_nav.policies.export import export_policy
+from shield_nav.policies.models import (
     DepthEncoder,
     DepthGRUModel,
     HypothesisSelect,
     expand_single_head,
     expand_state_inputs,
-    export_policy,
     widen_encoder,
 )
 

@@ -1,4 +1,4 @@
-"""The sampling tracker (shield_nav.mppi): rollouts, clamps, weights and warm starts against hand values."""
+"""The sampling tracker (shield_nav.algorithms.mppi): rollouts, clamps, weights and warm starts against hand values."""
 
 import math
 
@@ -9,10 +9,11 @@ from envs.config import ConfigError, load_config, stored_config
 from envs.fields import scene_field_stack
 from envs.navigation import NavigationEnv
 from envs.scenes import Box, Scene
-from shield_nav.baselines import BaselineConfig
-from shield_nav.expert import ExpertConfig, PlannerController
-from shield_nav.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
-from shield_nav.preview import discretise
+from shield_nav.algorithms.baselines import BaselineConfig
+from shield_nav.algorithms.expert import PlannerController
+from shield_nav.algorithms.expert_config import ExpertConfig
+from shield_nav.algorithms.mppi import MppiTracker, clamp_inputs, path_integral_mean, rollout_costs
+from shield_nav.algorithms.preview import discretise
 
 # One box in a small room: its +x face is the plane x = 4.5 for |y| < 1 (floor at z = 0, no ceiling).
 SCENE = Scene(bounds_lo=(0.0, -3.0, 0.0), bounds_hi=(9.0, 3.0, 3.0),

@@ -64,7 +64,9 @@ print(os.environ.get("GOMP_SPINCOUNT"))
 """
 
 
-@pytest.mark.parametrize("module", ["shield_nav.imitation", "shield_nav.route_view", "shield_nav.speed_budget"])
+@pytest.mark.parametrize(
+    "module", ["shield_nav.tools.imitation", "shield_nav.tools.route_view", "shield_nav.tools.speed_budget"]
+)
 def test_analysis_tools_set_it_only_when_run_as_tools(module):
     env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
 

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from shield_nav.paired import (
+from shield_nav.tools.paired import (
     by_scene,
     compare,
     compare_pooled,

@@ -384,7 +384,7 @@ def test_stage_prefixed_overrides_reach_their_stage_only(tmp_path):
     ]
     assert pipeline.stage_overrides(given, "second", ["first", "second"]) == ["max_iterations=7", "env.num_envs=6"]
     # a colon in the value is not a prefix; one in the key is
-    value = "runner.algorithm.class_name=shield_nav.anchored:AnchoredPPO"
+    value = "runner.algorithm.class_name=shield_nav.algorithms.anchored:AnchoredPPO"
     assert pipeline.stage_overrides([value, f"second:{value}"], "first", ["first", "second"]) == [value]
     assert pipeline.stage_overrides([value, f"second:{value}"], "second", ["first", "second"]) == [value, value]
     first, second = pipeline.resolve(pipe, "root", given)

@@ -1,4 +1,4 @@
-"""The planning expert (shield_nav.expert): speed profile, curvature, paths and commands against hand computations."""
+"""The planning expert (shield_nav.algorithms.expert): speed profile, curvature, paths, commands against hand values."""
 
 import math
 
@@ -8,8 +8,8 @@ import pytest
 from envs.config import ConfigError, load_config, stored_config
 from envs.navigation import NavigationEnv
 from envs.vehicle.config import AirframeConfig
-from shield_nav.baselines import BaselineConfig, PlannerExpert, make_baseline
-from shield_nav.expert import (
+from shield_nav.algorithms.baselines import BaselineConfig, PlannerExpert, make_baseline
+from shield_nav.algorithms.expert import (
     ExpertConfig,
     PlannerController,
     drag_accel,

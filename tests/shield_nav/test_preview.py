@@ -1,4 +1,4 @@
-"""The preview tracker (shield_nav.preview): model, LQ gains and timed reference against hand and scipy values."""
+"""The preview tracker (shield_nav.algorithms.preview): model, LQ gains, timed reference against hand and scipy."""
 
 import math
 
@@ -8,9 +8,11 @@ from scipy.optimize import least_squares
 
 from envs.config import ConfigError, load_config
 from envs.navigation import NavigationEnv
-from shield_nav.baselines import BaselineConfig
-from shield_nav.expert import ExpertConfig, PlannerController, drag_accel
-from shield_nav.preview import PreviewGains, discretise, prediction, timed_reference
+from shield_nav.algorithms.baselines import BaselineConfig
+from shield_nav.algorithms.expert import PlannerController
+from shield_nav.algorithms.expert_config import ExpertConfig
+from shield_nav.algorithms.expert_paths import drag_accel
+from shield_nav.algorithms.preview import PreviewGains, discretise, prediction, timed_reference
 
 
 def _env(n: int, speed: float) -> NavigationEnv:

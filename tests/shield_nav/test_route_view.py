@@ -1,12 +1,12 @@
-"""The route-in-view diagnostic (:mod:`shield_nav.route_view`): hand-computed prefixes, bearings and the CLI."""
+"""The route-in-view diagnostic (:mod:`shield_nav.tools.route_view`): hand-computed prefixes, bearings and the CLI."""
 
 import json
 
 import numpy as np
 import pytest
 
-from shield_nav import route_view
-from shield_nav.route_view import bearing_deg, seen_prefix
+from shield_nav.tools import route_view
+from shield_nav.tools.route_view import bearing_deg, seen_prefix
 
 
 def _straight(n=6, ds=0.5):
@@ -68,7 +68,7 @@ def test_cli_names_a_seed_outside_the_family_split(capsys):
 
 
 def test_route_away_by_hand():
-    from shield_nav.route_view import route_away
+    from shield_nav.tools.route_view import route_away
 
     ds = 0.5
     straight = _straight(n=9, ds=ds)[0]  # along +x, 4 m

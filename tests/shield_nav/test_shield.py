@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from envs.camera import CameraConfig, DepthCamera, voxel_keys
 from envs.config import ConfigError, load_config
 from envs.scenes.primitives import Box
-from shield_nav.scripted import fly
-from shield_nav.shield import (
+from shield_nav.safety.memory import _map_merge
+from shield_nav.safety.shield import (
     STATUS_FALLBACK,
     STATUS_RELAXED,
     STATUS_SOLVED,
@@ -27,7 +27,7 @@ from shield_nav.shield import (
     hocbf_rows,
     passing_rows,
 )
-from shield_nav.shield_rows import _map_merge
+from shield_nav.tools.scripted import fly
 
 G = 9.81
 P4 = {"barrier": "distance", "alpha0": 16.0, "alpha1": 8.0, "lag_s": 0.0, "r_safe": 0.5}
@@ -712,7 +712,7 @@ def test_step_response_lag_is_what_the_shield_models():
     """The lag the delay-aware barrier uses (0.15 s in the shield configs) against the vehicle's step response,
     measured on the full simulator: 63 % of a 5 m/s^2 step after 0.16 s, equivalent first-order delay 0.141 s
     (docs/shield.md, "Lag"). A change of the attitude loop or the motor model that moves these shows here."""
-    from shield_nav.scripted import step_response
+    from shield_nav.tools.scripted import step_response
 
     r = step_response()
     assert r["final_accel"] == pytest.approx(5.0, abs=0.05)
@@ -729,7 +729,7 @@ def test_point_mass_flights_stay_outside_r_safe_where_the_one_shot_selection_doe
     0.522. The one-shot selection ranks each sector's points at the raw command; the point that binds after the
     correction is dropped and the vehicle is let inside r_safe. The p = 4 active set alone gives 0.500 / 0.500 at
     the pole and 0.525 / 0.524 at the wall: it is the selection, not the gains."""
-    from shield_nav.scripted import point_mass_flight
+    from shield_nav.tools.scripted import point_mass_flight
 
     one_shot = point_mass_flight(kind, speed, ShieldConfig(**P4, active_set_iterations=0))
     active_set = point_mass_flight(kind, speed, ShieldConfig(**P4))
@@ -1065,7 +1065,7 @@ def test_kept_braking_rows_give_the_cloud_check_exactly():
     the active-set check reads them: at any acceleration it must return the same smallest row value and the same
     row, to the last bit, as the check that recomputes every point (``min_margin``), with and without the lag
     (including points the lagged prediction has passed, which keep their current row only)."""
-    from shield_nav.shield_rows import _rows_min_margin
+    from shield_nav.safety.rows import _rows_min_margin
 
     rng = np.random.default_rng(3)
     shield = HOCBFShield(ShieldConfig())
@@ -1181,7 +1181,7 @@ def test_hypotheses_input_and_config_errors():
 
 
 def test_median_depth_filter_by_hand():
-    from shield_nav.shield_rows import _median_depth
+    from shield_nav.safety.memory import _median_depth
 
     # A 3 x 4 image: a lone near outlier (1.0) on a 5 m wall, a one-pixel-wide vertical pole (2.0) in column 3,
     # an invalid pixel (0) at (2, 0) and the far range (10) at (0, 0).

@@ -10,8 +10,8 @@ import torch
 
 from envs.navigation import NavigationEnv
 from envs.rsl_rl import RslRlVecEnv
-from shield_nav.baselines import BaselineConfig, make_baseline
-from shield_nav.shield import HOCBFShield, ShieldConfig
+from shield_nav.algorithms.baselines import BaselineConfig, make_baseline
+from shield_nav.safety.shield import HOCBFShield, ShieldConfig
 from shield_nav.training.config import ConfigError, load_train_config
 from shield_nav.training.shield_loop import ShieldInLoop
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from shield_nav.expert import windowed_curvature
-from shield_nav.speed_bound import (
+from shield_nav.algorithms.expert_paths import windowed_curvature
+from shield_nav.tools.speed_bound import (
     DEFAULT_ACCEL,
     flight_ceiling,
     main,

@@ -1,12 +1,12 @@
-"""The expert's speed budget (shield_nav.speed_budget) against hand computations and the real flight."""
+"""The expert's speed budget (shield_nav.tools.speed_budget) against hand computations and the real flight."""
 
 import math
 
 import numpy as np
 import pytest
 
-from shield_nav.expert import ExpertConfig
-from shield_nav.speed_budget import budget, main, measure, polyline_distance, reference_speeds
+from shield_nav.algorithms.expert_config import ExpertConfig
+from shield_nav.tools.speed_budget import budget, main, measure, polyline_distance, reference_speeds
 
 
 def test_reference_speeds_read_the_trackers_sample_by_hand():

@@ -130,9 +130,9 @@ def test_the_cli_checks_a_config_without_importing_torch(tmp_path):
     assert res.stdout.strip() == "[]"
     # The lazy names resolve to the objects of the modules that define them.
     from shield_nav import training
-    from shield_nav.training import checks, cli, config, runner
+    from shield_nav.training import checks, cli, config, rsl_rl_cfg, runner
 
-    modules = {"checks": checks, "cli": cli, "config": config, "runner": runner}
+    modules = {"checks": checks, "cli": cli, "config": config, "rsl_rl_cfg": rsl_rl_cfg, "runner": runner}
     for name in training.__all__:
         assert getattr(training, name) is getattr(modules[training._WHERE[name]], name), name
     with pytest.raises(AttributeError, match="no_such_name"):
@@ -219,7 +219,7 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     assert "curriculum off: the levels stored in" in res.stdout and "curriculum levels restored" not in res.stdout
 
     # Packaging: the teacher without exports (not deployable), the student with an ONNX that matches its weights.
-    from shield_nav.package import actor_from_checkpoint, package
+    from shield_nav.tools.package import actor_from_checkpoint, package
 
     out_t = package(teacher_ckpt, "teacher", str(tmp_path / "ck"))
     assert "policy.onnx" not in os.listdir(out_t) and actor_from_checkpoint(teacher_ckpt)[0] is None
@@ -322,13 +322,13 @@ def test_distillation_inputs_fail_fast(tmp_path):
 
 
 def test_a_failed_export_keeps_the_checkpoint_and_says_how_to_re_export(tmp_path, monkeypatch, capsys):
-    import shield_nav.models
+    import shield_nav.policies.export
     from shield_nav.training import load_train_config, train
 
     def broken_export(*args, **kwargs):
         raise RuntimeError("simulated export failure")
 
-    monkeypatch.setattr(shield_nav.models, "export_policy", broken_export)
+    monkeypatch.setattr(shield_nav.policies.export, "export_policy", broken_export)
     small = ["env.num_envs=4", "max_iterations=1", f"log_root={tmp_path}", "runner.num_steps_per_env=8",
              "runner.algorithm.num_mini_batches=2"]  # fmt: skip
     cfg = load_train_config(os.path.join(REPO, "configs", "train", "quick.yaml"), overrides=small)
@@ -337,11 +337,11 @@ def test_a_failed_export_keeps_the_checkpoint_and_says_how_to_re_export(tmp_path
     run_dir = only_run_dir(str(tmp_path))
     assert os.path.isfile(os.path.join(run_dir, "model_0.pt"))
     err = capsys.readouterr().err
-    assert f"python -m shield_nav.package {os.path.join(run_dir, 'model_0.pt')}" in err
+    assert f"python -m shield_nav.tools.package {os.path.join(run_dir, 'model_0.pt')}" in err
 
 
 def _is_pipeline(name):
-    from shield_nav.training.pipeline import is_pipeline_file
+    from shield_nav.training.pipeline_file import is_pipeline_file
 
     return is_pipeline_file(os.path.join(REPO, "configs", "train", name))
 
@@ -397,7 +397,8 @@ def test_shipped_train_configs_load_and_their_inputs_exist(name):
         ckpt = torch.load(os.path.join(REPO, "checkpoints", "full", "model.pt"), weights_only=False)
         # the recipe rebuilds the shipped run: its stored config, read back with the defaults of any keys added since,
         # equals the recipe but for the name and the folder the run was written under (--log-dir)
-        stored = to_dict(load_train_config(overrides=stored_config(TrainConfig, ckpt["infos"]["config"])))
+        infos = read_checkpoint_infos(os.path.join(REPO, "checkpoints", "full", "model.pt"))  # as every reader does
+        stored = to_dict(load_train_config(overrides=stored_config(TrainConfig, infos["config"])))
         assert {k for k in full if full[k] != stored.get(k)} <= {"name", "log_root"}
         assert not ckpt["infos"]["config"]["shield"]["passing"] and not cfg.shield.passing
     else:

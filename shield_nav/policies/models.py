@@ -8,7 +8,7 @@ sees the noise-free privileged group only, so rsl-rl's own :class:`rsl_rl.models
 
 :class:`DepthGRUModel` is written against rsl-rl's model interface (the one ``MLPModel`` / ``CNNModel`` /
 ``RNNModel`` implement), so the stock ``OnPolicyRunner`` and ``PPO`` run it unchanged with
-``actor.class_name: "shield_nav.models:DepthGRUModel"``:
+``actor.class_name: "shield_nav.policies.models:DepthGRUModel"``:
 
 * rollout mode (``masks is None``): observations are one step for all envs, ``depth (N, C, H, W)``,
   ``state (N, S)``; the GRU hidden state ``(L, N, Hd)`` is kept inside the model, reset per env on ``done``;
@@ -22,24 +22,19 @@ Exports (TorchScript and ONNX) carry the GRU state explicitly: ``(obs, depth, h_
 
 from __future__ import annotations
 
-import copy
-import os
-import warnings
-
 import torch
 import torch.nn as nn
 from rsl_rl.models import MLPModel
 from rsl_rl.modules import MLP, RNN, HiddenState
 from tensordict import TensorDict
 
+from shield_nav.policies.export import ExportedDepthGRU
+
 __all__ = [
     "DepthEncoder",
     "DepthGRUModel",
     "ExpertTeacher",
-    "ExportedDepthGRU",
     "HypothesisSelect",
-    "export_module",
-    "export_policy",
     "expand_single_head",
 ]
 
@@ -334,7 +329,7 @@ class DepthGRUModel(MLPModel):
             rnn_num_layers: Number of stacked GRU layers ``L``.
             num_hypotheses: ``K``. With ``K > 1`` the MLP head outputs ``K`` candidate actions and ``K`` scores and
                 the model acts with the best-scored candidate (:class:`HypothesisSelect`); trained by
-                :class:`shield_nav.distillation.MultiHypothesisDistillation`. ``1``: the paper's single head.
+                :class:`shield_nav.algorithms.distillation.MultiHypothesisDistillation`. ``1``: the paper's single head.
         """
         if int(num_hypotheses) < 1:
             raise ValueError(f"DepthGRUModel: num_hypotheses must be >= 1, got {num_hypotheses}")
@@ -384,7 +379,8 @@ class DepthGRUModel(MLPModel):
     def mean_head(self) -> nn.Module:
         """The module whose output is the mean action ``(..., A)``, the distribution's input.
 
-        The MLP head, or with ``K > 1`` its candidate selection. Read by :class:`shield_nav.anchored.AnchoredPPO`.
+        The MLP head, or with ``K > 1`` its candidate selection. Read by
+        :class:`shield_nav.algorithms.anchored.AnchoredPPO`.
         """
         return self.mlp if self.num_hypotheses == 1 else self.mlp[1]
 
@@ -469,7 +465,7 @@ class ExpertTeacher(nn.Module):
     The env adapter computes the expert's normalised action for every visited state as the ``expert`` observation
     group (``envs.rsl_rl.RslRlVecEnv(expert=...)``); this model hands that group to the algorithm as the label, so
     the stock ``DistillationRunner`` runs DAgger against a scripted privileged expert (the oracle) instead of a
-    trained MLP teacher. Use as ``teacher.class_name: "shield_nav.models:ExpertTeacher"`` with
+    trained MLP teacher. Use as ``teacher.class_name: "shield_nav.policies.models:ExpertTeacher"`` with
     ``obs_groups.teacher: [expert]``. It has no weights and no hidden state.
     """
 
@@ -506,102 +502,3 @@ class ExpertTeacher(nn.Module):
 
     def detach_hidden_state(self, dones: torch.Tensor | None = None) -> None:
         """Nothing to detach."""
-
-
-class ExportedDepthGRU(nn.Module):
-    """Deterministic, stateless export of a :class:`DepthGRUModel` (TorchScript and ONNX).
-
-    ``forward(obs (B, S), depth (B, C, H, W), h_in (L, B, Hd)) -> (actions (B, A), h_out (L, B, Hd))``: the state
-    normaliser is frozen, the action is the distribution mean. The caller owns the hidden state: start from zeros
-    (``initial_state(B)``) and zero the rows of envs whose episode ended, as the training rollout does.
-    """
-
-    def __init__(self, model: DepthGRUModel, verbose: bool = False) -> None:
-        """Copy the parts of ``model`` (on the CPU) needed for inference."""
-        super().__init__()
-        self.verbose = verbose
-        self.obs_normalizer = copy.deepcopy(model.obs_normalizer).cpu()
-        self.encoder = copy.deepcopy(model.encoder).cpu()
-        self.gru = copy.deepcopy(model.rnn.rnn).cpu()  # the bare nn.GRU, no stored state
-        self.mlp = copy.deepcopy(model.mlp).cpu()
-        if model.distribution is not None:
-            self.deterministic_output = model.distribution.as_deterministic_output_module()
-        else:
-            self.deterministic_output = nn.Identity()
-        self.obs_dim = int(model.obs_dim)
-        self.depth_shape = list(model.depth_shape)
-        self.num_layers = int(self.gru.num_layers)
-        self.hidden_size = int(self.gru.hidden_size)
-        self.input_names = ["obs", model.depth_group, "h_in"]
-        """ONNX input names (rsl-rl's exporter reads them)."""
-        self.output_names = ["actions", "h_out"]
-        """ONNX output names."""
-
-    def forward(self, obs: torch.Tensor, depth: torch.Tensor, h_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One policy step for a batch of B envs; returns the actions and the next hidden state."""
-        x = torch.cat([self.obs_normalizer(obs), self.encoder(depth)], dim=-1)  # (B, S + F)
-        y, h_out = self.gru(x.unsqueeze(0), h_in)  # (1, B, Hd), (L, B, Hd)
-        return self.deterministic_output(self.mlp(y.squeeze(0))), h_out
-
-    @torch.jit.export
-    def initial_state(self, batch_size: int) -> torch.Tensor:
-        """Zero hidden state ``(L, batch_size, Hd)``."""
-        return torch.zeros(self.num_layers, batch_size, self.hidden_size)
-
-    @torch.jit.export
-    def reset(self) -> None:
-        """No-op (the state is an explicit input); kept because rsl-rl's exported policies have it."""
-        pass
-
-    @torch.jit.unused
-    def get_dummy_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Inputs for ONNX tracing: one env."""
-        return (
-            torch.zeros(1, self.obs_dim),
-            torch.zeros(1, *self.depth_shape),
-            torch.zeros(self.num_layers, 1, self.hidden_size),
-        )
-
-
-def export_policy(
-    model: DepthGRUModel, out_dir: str, jit_name: str = "policy.pt", onnx_name: str = "policy.onnx"
-) -> dict[str, str]:
-    """Write TorchScript and ONNX exports of ``model`` with a dynamic batch dimension; return their paths.
-
-    The ONNX graph has inputs ``obs (B, S)``, ``<depth group> (B, C, H, W)``, ``h_in (L, B, Hd)`` and outputs
-    ``actions (B, A)``, ``h_out (L, B, Hd)`` (opset 18, TorchScript-based exporter, which handles ``nn.GRU``).
-    """
-    return export_module(model.as_onnx(verbose=False), out_dir, jit_name, onnx_name)
-
-
-def export_module(
-    exp: nn.Module, out_dir: str, jit_name: str = "policy.pt", onnx_name: str = "policy.onnx"
-) -> dict[str, str]:
-    """Write the TorchScript and ONNX files of an export module; return their paths.
-
-    ``exp``: ``forward(obs, depth, h_in) -> (actions, h_out)`` with ``input_names``, ``output_names`` and
-    ``get_dummy_inputs``, e.g. :class:`ExportedDepthGRU` or :class:`shield_nav.ensemble.ExportedEnsemble`.
-    """
-    os.makedirs(out_dir, exist_ok=True)
-    jit_path = os.path.join(out_dir, jit_name)
-    onnx_path = os.path.join(out_dir, onnx_name)
-    exp.eval()
-    torch.jit.script(exp).save(jit_path)
-    dynamic = {name: {0: "batch"} for name in exp.input_names[:-1]}
-    dynamic.update({"h_in": {1: "batch"}, "actions": {0: "batch"}, "h_out": {1: "batch"}})
-    with torch.no_grad(), warnings.catch_warnings():
-        # The exporter warns about GRU batch sizes unless h0 is a graph input; here it is (h_in).
-        warnings.filterwarnings("ignore", message=".*with a variable length with GRU.*")
-        warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
-        torch.onnx.export(
-            exp,
-            exp.get_dummy_inputs(),
-            onnx_path,
-            export_params=True,
-            opset_version=18,
-            input_names=exp.input_names,
-            output_names=exp.output_names,
-            dynamic_axes=dynamic,
-            dynamo=False,
-        )
-    return {"jit": jit_path, "onnx": onnx_path}

@@ -1,7 +1,7 @@
 """HOCBF rows: the acceleration model, the barrier rows, and which points of the cloud become rows.
 
-The numba kernels of :mod:`shield_nav.shield` (docs/shield.md, "Derivation", "Which points become constraints" and
-"Lag", "Braking barrier"). For a point o and the vehicle at p with velocity v, r = p - o, and the row of the HOCBF
+The numba kernels of :mod:`shield_nav.safety.shield` (docs/shield.md, "Derivation", "Which points become constraints"
+and "Lag", "Braking barrier"). For a point o and the vehicle at p with velocity v, r = p - o, and the row of the HOCBF
 condition is 2 r.a >= -2|v|^2 - alpha1 (2 r.v) - alpha0 (|r|^2 - r_safe^2); the braking barrier's row has the same
 A = 2 r and its own right-hand side (``braking_rows``).
 """
@@ -13,9 +13,6 @@ import math
 import numba as nb
 import numpy as np
 
-from envs.camera.pointcloud import key_slots, voxel_keys
-from envs.vehicle.rotations import attitude_from_thrust_axis, euler_zyx_to_rot, rot_to_euler_zyx
-
 PASSING_MIN_SPEED = 0.5
 """[m/s] Below this speed the braking barrier's collision-cone union is off (its row divides by |v|)."""
 PASSING_MIN_S = 0.05
@@ -25,64 +22,6 @@ alone applies."""
 BRAKE_EPS = 1.0e-3
 """[m] Smallest |d - r_safe| the braking barrier divides by (keeps its rows finite at r_safe, where an approach
 then asks for far more braking than the vehicle has, and the QP relaxes)."""
-
-
-# --------------------------------------------------------------------------------------------- acceleration model
-def accel_from_command(command: np.ndarray, gravity: float = 9.81) -> np.ndarray:
-    """World-frame acceleration of commands (N, 4) = [f_n, phi, theta, psi]: a = f_n R e3 - g e3. Returns (N, 3)."""
-    cmd = np.atleast_2d(command)
-    z_b = euler_zyx_to_rot(cmd[:, 1], cmd[:, 2], cmd[:, 3])[:, :, 2]
-    a = cmd[:, :1] * z_b
-    a[:, 2] -= gravity
-    return a
-
-
-def command_from_accel(accel: np.ndarray, psi: np.ndarray, gravity: float = 9.81) -> np.ndarray:
-    """Inverse of :func:`accel_from_command` for a given yaw: T = a + g e3, f_n = |T|, body z = T / |T|.
-
-    Roll and pitch follow from the attitude with that thrust axis and heading psi (PX4's bodyzToAttitude).
-    Returns (N, 4) = [f_n, phi, theta, psi] with psi unchanged.
-    """
-    a = np.atleast_2d(accel)
-    psi = np.atleast_1d(psi)
-    t = a + np.array([0.0, 0.0, gravity])
-    f_n = np.linalg.norm(t, axis=1)
-    z_d = t / np.maximum(f_n, 1e-12)[:, None]
-    euler = rot_to_euler_zyx(attitude_from_thrust_axis(z_d, psi))
-    return np.concatenate((f_n[:, None], euler[:, :2], psi[:, None]), axis=1)
-
-
-@nb.njit(cache=True, nogil=True)
-def _accel_from_command_1(f_n: float, phi: float, theta: float, psi: float, g: float, out: np.ndarray) -> None:
-    """Scalar :func:`accel_from_command` into ``out`` (3,): a = f_n R(phi, theta, psi) e3 - g e3."""
-    cf, sf, ct, st, cp, sp = (
-        math.cos(phi),
-        math.sin(phi),
-        math.cos(theta),
-        math.sin(theta),
-        math.cos(psi),
-        math.sin(psi),
-    )
-    out[0] = f_n * (cp * st * cf + sp * sf)
-    out[1] = f_n * (sp * st * cf - cp * sf)
-    out[2] = f_n * ct * cf - g
-
-
-@nb.njit(cache=True, nogil=True)
-def _command_from_accel_1(ax: float, ay: float, az: float, psi: float, g: float) -> tuple[float, float, float]:
-    """Scalar :func:`command_from_accel` for one vehicle: returns (f_n, phi, theta)."""
-    tx, ty, tz = ax, ay, az + g
-    f = math.sqrt(tx * tx + ty * ty + tz * tz)
-    zx, zy, zz = tx / f, ty / f, tz / f
-    # x_b = normalize(y_c x z) with y_c = (-sin psi, cos psi, 0); y_b = z x x_b.
-    yx, yy = -math.sin(psi), math.cos(psi)
-    xx, xy, xz = yy * zz, -yx * zz, yx * zy - yy * zx
-    n = math.sqrt(xx * xx + xy * xy + xz * xz)
-    xx, xy, xz = xx / n, xy / n, xz / n
-    ybz = zx * xy - zy * xx
-    phi = math.atan2(ybz, zz)  # atan2(R21, R22)
-    theta = -math.asin(min(1.0, max(-1.0, xz)))  # -asin(R20)
-    return f, phi, theta
 
 
 def ground_row(z: float, v_z: float, alpha0: float, alpha1: float, min_altitude: float) -> float:
@@ -613,108 +552,3 @@ def _rows_min_margin(rows: np.ndarray, n: int, a: np.ndarray, out_row: np.ndarra
         out_row[0], out_row[1], out_row[2], out_row[3] = (rows[best_i, j], rows[best_i, j + 1], rows[best_i, j + 2],
                                                           rows[best_i, j + 3])  # fmt: skip
     return best
-
-
-@nb.njit(cache=True, nogil=True)
-def _append_remembered(ring: np.ndarray, out: np.ndarray, m: int) -> int:
-    """Copy the filled rows of a point-memory ring (NaN x: empty) into ``out`` from row ``m``; return the new count."""
-    for i in range(ring.shape[0]):
-        x = ring[i, 0]
-        if x == x:  # not NaN
-            out[m, 0], out[m, 1], out[m, 2] = x, ring[i, 1], ring[i, 2]
-            m += 1
-    return m
-
-
-@nb.njit(cache=True, nogil=True)
-def _map_merge(img: np.ndarray, old: np.ndarray, old_st: np.ndarray, p: np.ndarray, r2: float, z_lo: float,
-               z_hi: float, calls: int, max_age: int, voxel: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The local map's intake (``HOCBFShield._with_map``): the merged points (M, 3) and their call stamps (M,).
-
-    Candidates: the image's points ``img`` within ``sqrt(r2)`` of ``p`` and inside [z_lo, z_hi] (stamped ``calls``),
-    then the old map's points no older than ``max_age`` calls and within ``sqrt(r2)``, in that order. Of each
-    ``voxel_keys`` cube the first candidate is kept (an image point before an old one: the newest wins), and the
-    kept points come out in increasing key order: the set and order of ``np.unique(keys, return_index=True)``'s
-    first indices, by ``key_slots``'s hash table and a sort of the kept keys only (the candidates repeat a cube
-    several times).
-    """
-    n_img, n_old = img.shape[0], old.shape[0]
-    cand = np.empty((n_img + n_old, 3))
-    st = np.empty(n_img + n_old, dtype=np.int64)
-    n = 0
-    for i in range(n_img):
-        dx, dy, dz = img[i, 0] - p[0], img[i, 1] - p[1], img[i, 2] - p[2]
-        if dx * dx + dy * dy + dz * dz <= r2 and img[i, 2] >= z_lo and img[i, 2] <= z_hi:
-            cand[n, 0], cand[n, 1], cand[n, 2] = img[i, 0], img[i, 1], img[i, 2]
-            st[n] = calls
-            n += 1
-    for i in range(n_old):
-        dx, dy, dz = old[i, 0] - p[0], old[i, 1] - p[1], old[i, 2] - p[2]
-        if calls - old_st[i] <= max_age and dx * dx + dy * dy + dz * dz <= r2:
-            cand[n, 0], cand[n, 1], cand[n, 2] = old[i, 0], old[i, 1], old[i, 2]
-            st[n] = old_st[i]
-            n += 1
-    keys = voxel_keys(cand[:n], voxel)
-    slots, m = key_slots(keys)
-    first = np.empty(m, dtype=np.int64)  # each cube's first candidate: where its slot (numbered as first seen) appears
-    seen = 0
-    for i in range(n):
-        if slots[i] == seen:
-            first[seen] = i
-            seen += 1
-    order = np.argsort(keys[first])  # the kept keys are distinct: any sort gives np.unique's order
-    out = np.empty((m, 3))
-    out_st = np.empty(m, dtype=np.int64)
-    for j in range(m):
-        i = first[order[j]]
-        out[j, 0], out[j, 1], out[j, 2] = cand[i, 0], cand[i, 1], cand[i, 2]
-        out_st[j] = st[i]
-    return out, out_st
-
-
-# --------------------------------------------------------------------------------------------- depth pre-filter
-DEPTH_FILTERS = ("none", "median_cross", "median_3x3")
-"""Values of ``ShieldConfig.depth_filter``: the windows of :func:`_median_depth` (none: the image as it comes)."""
-
-
-@nb.njit(cache=True, nogil=True)
-def _median_depth(img: np.ndarray, out: np.ndarray, square: bool) -> None:
-    """Median-filter a depth image (H, W) into ``out`` (H, W) over the valid pixels of each pixel's window.
-
-    The window is the pixel with its 4 neighbours (``square`` False: a cross of 5, which keeps a one-pixel-wide
-    vertical or horizontal line) or its 8 neighbours (True: 3 x 3). Valid pixels read z > 0 (a finite depth; pixels
-    without a return read the far range and take part as far values, so a lone near outlier against the sky is
-    removed). An invalid pixel (0 or NaN) stays as it is and is left out of its neighbours' windows; the median of
-    an even count is the mean of the middle two. Window positions outside the image are left out.
-    """
-    h, w = img.shape
-    buf = np.empty(9)
-    for v in range(h):
-        for u in range(w):
-            z = img[v, u]
-            if not (z > 0.0):  # invalid (0, negative or NaN): kept as is
-                out[v, u] = z
-                continue
-            n = 0
-            for dv in range(-1, 2):
-                vv = v + dv
-                if vv < 0 or vv >= h:
-                    continue
-                for du in range(-1, 2):
-                    if not square and dv != 0 and du != 0:
-                        continue
-                    uu = u + du
-                    if uu < 0 or uu >= w:
-                        continue
-                    x = img[vv, uu]
-                    if x > 0.0:
-                        buf[n] = x
-                        n += 1
-            for i in range(1, n):  # insertion sort of at most 9 values
-                x = buf[i]
-                j = i
-                while j > 0 and buf[j - 1] > x:
-                    buf[j] = buf[j - 1]
-                    j -= 1
-                buf[j] = x
-            out[v, u] = buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])

@@ -1,11 +1,11 @@
 """Where does the privileged expert's speed go? The gap between the target speed and the flown one, split by cause.
 
-``python -m shield_nav.speed_budget [--scenes train_shapes:8-15] [--scene-seed default] [--speed 7] [--steps 600]
+``python -m shield_nav.tools.speed_budget [--scenes train_shapes:8-15] [--scene-seed default] [--speed 7] [--steps 600]
 [--num-envs 32] [--set KEY=VALUE ...] [--json]``
 
-flies the planning expert (:mod:`shield_nav.expert`, rendering off, envs reset as their episodes end) and, at every
-control step of every env, reads three speeds at the tracker's reference sample (``round(|v| lag_s / ds)`` along the
-planned path):
+flies the planning expert (:mod:`shield_nav.algorithms.expert`, rendering off, envs reset as their episodes end) and, at
+every control step of every env, reads three speeds at the tracker's reference sample (``round(|v| lag_s / ds)`` along
+the planned path):
 
 * ``curvature_cap``: ``min(target, sqrt(lat_accel / kappa))``, what the bends of the path allow;
 * ``profile``: the speed profile there (the curvature caps, any clearance or camera cap, and the backward braking
@@ -15,8 +15,8 @@ planned path):
 The means over all steps (the start from hover included, as ``mean_speed`` of the evaluation includes it) split the
 target's shortfall into ``bends = target - curvature_cap``, ``braking = curvature_cap - profile`` (the braking pass
 and the other caps) and ``tracking = profile - vehicle`` (the velocity loop's lag and drag error, the starts, the
-re-acceleration out of bends). ``--set`` takes :class:`shield_nav.expert.ExpertConfig` keys (``--set drag_ff=1``),
-so a variant's budget is read beside the default's in a few seconds, before an evaluation of its success.
+re-acceleration out of bends). ``--set`` takes :class:`shield_nav.algorithms.expert_config.ExpertConfig` keys (``--set
+drag_ff=1``), so a variant's budget is read beside the default's in a few seconds, before an evaluation of its success.
 
 It also measures how far the vehicle strays from what it planned: ``deviation_mean`` and ``deviation_p95``, the
 distance from the vehicle to the path the expert planned ``DEVIATION_DELAY_S`` (0.3 s) earlier in the same
@@ -42,19 +42,19 @@ import numpy as np
 
 from envs.config import ConfigError, load_config
 from envs.scenes import FAMILIES, make_scene
+from shield_nav.algorithms.expert_paths import polyline_distance
 from shield_nav.evaluation.config import EvalError, parse_scenes
-from shield_nav.expert import polyline_distance
 
 
 def reference_speeds(last: dict[str, np.ndarray], speed: np.ndarray, target: np.ndarray, ec: Any) -> np.ndarray:
     """(N, 3) curvature cap, profile and vehicle speed at each env's reference sample.
 
     Args:
-        last: :attr:`shield_nav.expert.PlannerController.last` after a ``commands`` call (``kappa``, ``speed`` and
-            the tracker's reference sample ``k_ref``).
+        last: :attr:`shield_nav.algorithms.expert.PlannerController.last` after a ``commands`` call (``kappa``,
+            ``speed`` and the tracker's reference sample ``k_ref``).
         speed: |v| (N,) of the vehicles at that call.
         target: Target speeds (N,).
-        ec: The expert's :class:`shield_nav.expert.ExpertConfig`.
+        ec: The expert's :class:`shield_nav.algorithms.expert_config.ExpertConfig`.
     """
     prof, kappa = last["speed"], last["kappa"]
     rows = np.arange(len(speed))
@@ -85,8 +85,9 @@ def budget(samples: np.ndarray, target: float) -> dict[str, float]:
 def measure(family: str, indices: list[int], scene_seed: int | None, speed: float, steps: int, num_envs: int,
             seed: int = 0, expert: dict[str, Any] | None = None) -> dict:  # fmt: skip
     """Fly the expert ``steps`` control steps in ``num_envs`` envs over the scenes; the speed budget of all steps."""
-    from shield_nav.baselines import BaselineConfig
-    from shield_nav.expert import PlannerController, flight_env
+    from shield_nav.algorithms.baselines import BaselineConfig
+    from shield_nav.algorithms.expert import PlannerController
+    from shield_nav.algorithms.expert_paths import flight_env
 
     cfg = load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in (expert or {}).items()})
     env = flight_env(family, indices, scene_seed, speed, num_envs, seed)
@@ -134,7 +135,7 @@ def parse_key_value(text: str) -> tuple[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.speed_budget", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.speed_budget", description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="train_shapes:8-15", help="FAMILY or FAMILY:INDICES, as eval.py "
                     "(default train_shapes:8-15, the validation scenes)")  # fmt: skip
     ap.add_argument("--scene-seed", type=lambda t: None if t == "default" else int(t), default=None,
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                  f"{args.speed}")  # fmt: skip
     expert = dict(args.sets)
     try:  # a bad expert key or value, scene or seed is named before any flight
-        from shield_nav.baselines import BaselineConfig
+        from shield_nav.algorithms.baselines import BaselineConfig
 
         load_config(BaselineConfig, overrides={f"expert.{k}": v for k, v in expert.items()})
         for i in indices:

@@ -1,6 +1,6 @@
 """How fast could this vehicle fly the routes that were flown? A ceiling for the realised speed of an evaluation.
 
-``python -m shield_nav.speed_bound <eval_out> [<eval_out> ...] [--rows expert] [--speeds 7] [--accel 11.7]
+``python -m shield_nav.tools.speed_bound <eval_out> [<eval_out> ...] [--rows expert] [--speeds 7] [--accel 11.7]
 [--lag 0.154] [--json] [--plot PNG]``
 
 reads the successful trials of an ``eval.py`` output folder (their recorded trajectories, one point every
@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from shield_nav.expert import windowed_curvature
+from shield_nav.algorithms.expert_paths import windowed_curvature
 
 RESAMPLE_DS = 0.25
 """Spacing [m] at which a flown path is resampled by arc length before its curvature is measured."""
@@ -189,7 +189,7 @@ def plot(result: list[dict[str, Any]], path: str, title: str = "") -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line (module docstring)."""
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.speed_bound", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.speed_bound", description=__doc__.split("\n")[0])
     ap.add_argument(
         "out_dirs",
         nargs="+",

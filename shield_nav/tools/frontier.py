@@ -1,10 +1,10 @@
 """Success against realised speed: where each evaluated row sits on the speed-safety plane at one target speed.
 
-``python -m shield_nav.frontier LABEL=OUT_DIR:ROW [LABEL=OUT_DIR:ROW ...] [--speed 7] [--bar-speed 0.85]
+``python -m shield_nav.tools.frontier LABEL=OUT_DIR:ROW [LABEL=OUT_DIR:ROW ...] [--speed 7] [--bar-speed 0.85]
 [--bar-success 93] [--plot PNG] [--json]``, e.g. the expert's variants on one validation set:
-``python -m shield_nav.frontier default=eval_out/va:expert preview=eval_out/va_preview:expert --plot f.png``
+``python -m shield_nav.tools.frontier default=eval_out/va:expert preview=eval_out/va_preview:expert --plot f.png``
 
-For each row it reads the trials flown at ``--speed`` (an ``eval.py`` output folder, as :mod:`shield_nav.paired`
+For each row it reads the trials flown at ``--speed`` (an ``eval.py`` output folder, as :mod:`shield_nav.tools.paired`
 does) and reports the success rate with its 95 % Wilson interval and the realised speed of the successes as a share
 of the target (the mean of their ``metrics.mean_speed``, the table's ``Vel`` column, divided by the target). A
 variant that only trades one for the other moves along a curve; a better one moves up and to the right of it. The
@@ -20,7 +20,7 @@ import json
 import sys
 
 from shield_nav.evaluation import wilson_interval
-from shield_nav.paired import row_trials
+from shield_nav.tools.paired import row_trials
 
 __all__ = ["frontier_point", "main"]
 
@@ -78,7 +78,7 @@ def _plot(points: list[dict], bar_speed: float, bar_success: float, speed: float
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.frontier", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.frontier", description=__doc__.split("\n")[0])
     ap.add_argument("rows", nargs="+", metavar="LABEL=OUT_DIR:ROW")
     ap.add_argument("--speed", type=float, default=7.0, help="target speed [m/s] (default 7)")
     ap.add_argument("--bar-speed", type=float, default=0.85, help="realised-speed bar, share of target (0.85)")

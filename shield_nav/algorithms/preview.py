@@ -1,7 +1,7 @@
 """A receding-horizon preview tracker: linear-quadratic MPC on the attitude loop's first-order model.
 
-The planning expert (:mod:`shield_nav.expert`) plans a path and a speed profile along it. Its ``tangent`` tracker
-turns them into an acceleration with a velocity loop, a cross-track term and a partial feedforward; it reads one
+The planning expert (:mod:`shield_nav.algorithms.expert`) plans a path and a speed profile along it. Its ``tangent``
+tracker turns them into an acceleration with a velocity loop, a cross-track term and a partial feedforward; it reads one
 reference sample and so reacts to a bend once the vehicle is in it. This tracker looks ahead: it times the planned
 path into a reference trajectory and chooses the acceleration command that, for the inner loop's nominal model,
 tracks the next ``steps x dt`` seconds of that trajectory best.
@@ -17,7 +17,7 @@ positions and velocities) ``+ r_acc sum_k |u_k|^2 + r_jerk sum_k |u_k - u_{k-1}|
 acceleration now. Without constraints the minimiser is linear in the reference, the state and the drag, so the
 first input is a fixed linear map (:class:`PreviewGains`), computed once: no solver, no per-env loop. Only that
 first input is applied; the next control step solves again from the new state (receding horizon). The tilt and
-thrust limits are applied afterwards (:func:`shield_nav.tracking.accel_to_command`).
+thrust limits are applied afterwards (:func:`shield_nav.algorithms.tracking.accel_to_command`).
 
 **Reference** (:func:`timed_reference`). The path is timed by a forward pass from the vehicle's current speed,
 ``w_{i+1} = min(v_{i+1}, sqrt(w_i^2 + 2 accel ds_i))`` under the planned profile ``v``, so the reference never runs

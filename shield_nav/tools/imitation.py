@@ -1,6 +1,6 @@
 """How closely does a depth student imitate its expert, and how does it miss? Per-dimension imitation metrics.
 
-``python -m shield_nav.imitation checkpoints/student [--speed 3] [--level 8] [--family F] [--steps 400] [--json]``
+``python -m shield_nav.tools.imitation checkpoints/student [--speed 3] [--level 8] [--family F] [--steps 400] [--json]``
 
 flies the student's own policy on its training scene family (the DAgger state distribution; training seeds only,
 no evaluation scene is touched) at one target speed and curriculum level. It labels every visited state with the
@@ -17,7 +17,7 @@ pitch, yaw):
   * ``wrong_sign_mse_share``: the share of that dimension's error that comes from the wrong-sign samples.
 
 A large wrong-sign share means the student and its expert chose different sides around obstacles. Averaging the
-two sides is the failure a multi-hypothesis head addresses (:mod:`shield_nav.distillation`).
+two sides is the failure a multi-hypothesis head addresses (:mod:`shield_nav.algorithms.distillation`).
 
 For a multi-hypothesis student (``actor.num_hypotheses`` K > 1) a ``selection`` section reads its candidate choice
 (:func:`selection_metrics`): how often the flown (best-scored) candidate is the one nearest the expert's label
@@ -27,7 +27,7 @@ For a multi-hypothesis student (``actor.num_hypotheses`` K > 1) a ``selection`` 
 (``switch_rate``), with the mean jump of the flown action on those steps and on the others.
 
 With the planning expert the samples are also split by the expert's route
-(:func:`shield_nav.route_view.route_away`): steps where the route 3 m ahead lies more than 45 deg off the goal's
+(:func:`shield_nav.tools.route_view.route_away`): steps where the route 3 m ahead lies more than 45 deg off the goal's
 bearing (``away``: a way the goal's direction does not suggest, chosen by the map beyond the view) and the rest
 (``toward``), each with the same metrics. ``--family`` flies another training family, e.g. the box fields of
 ``train_shapes_perlin`` (indices 16-23).
@@ -46,8 +46,8 @@ import os
 
 import numpy as np
 
-from shield_nav.expert import PlannerController
-from shield_nav.route_view import route_away
+from shield_nav.algorithms.expert import PlannerController
+from shield_nav.tools.route_view import route_away
 
 ACTION_NAMES = ("thrust", "roll", "pitch", "yaw")
 HARD_TURN = 0.3
@@ -95,7 +95,7 @@ def selection_metrics(cands: np.ndarray, scores: np.ndarray, expert: np.ndarray,
     Args:
         cands: Candidate actions ``(T, N, K, A)`` at each of ``T`` steps of ``N`` envs.
         scores: Their scores ``(T, N, K)``; the flown candidate is the best-scored one (the first on ties, as
-            :class:`shield_nav.models.HypothesisSelect`).
+            :class:`shield_nav.policies.models.HypothesisSelect`).
         expert: The expert's labels ``(T, N, A)``.
         dones: ``(T, N)``: env ``n``'s episode ended at step ``t`` (step ``t + 1`` starts a new one, so a change of
             candidate across it is not counted).
@@ -156,7 +156,7 @@ def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num
     """
     import torch
 
-    from shield_nav.package import actor_from_checkpoint
+    from shield_nav.tools.package import actor_from_checkpoint
     from shield_nav.training import make_env
 
     path = os.path.join(ckpt, "model.pt") if os.path.isdir(ckpt) else ckpt
@@ -240,7 +240,7 @@ def format_table(res: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.imitation", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.imitation", description=__doc__.split("\n")[0])
     ap.add_argument("checkpoint", help="checkpoint folder (checkpoints/<name>) or model_*.pt of a DAgger student")
     ap.add_argument("--speed", type=float, default=3.0, help="target speed [m/s] (default 3)")
     ap.add_argument("--level", type=int, default=8, help="curriculum level = training scene index (default 8)")

@@ -16,7 +16,7 @@ from envs.camera import CameraConfig, DepthCamera
 from envs.scenes.primitives import Box, Cylinder
 from envs.vehicle.config import VehicleConfig
 from envs.vehicle.vehicles import Vehicles
-from shield_nav.shield import HOCBFShield, ShieldConfig, command_from_accel
+from shield_nav.safety.shield import HOCBFShield, ShieldConfig, command_from_accel
 
 OBSTACLE_X = 12.0
 """Distance from the start to the obstacle's near side [m]."""
@@ -269,7 +269,7 @@ def plot_flights(kind: str, speeds: list[float], path: str, duration: float = 4.
 if __name__ == "__main__":
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.scripted", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.scripted", description=__doc__.splitlines()[0])
     ap.add_argument("--kind", default="pole", choices=["pole", "wall"])
     ap.add_argument("--speeds", default="3,5,7,9")
     ap.add_argument("--plot", help="output PNG of the shielded and unshielded flights")

@@ -1,6 +1,6 @@
 """Vehicle demo: hover and attitude steps on the simulated quadrotor, printing the tracking figures.
 
-``python -m shield_nav.demo [--plot PATH]``. Runs in a few seconds; the same experiments back the vehicle tests
+``python -m shield_nav.tools.demo [--plot PATH]``. Runs in a few seconds; the same experiments back the vehicle tests
 and docs/vehicle.md.
 """
 
@@ -14,7 +14,7 @@ from envs.vehicle.response import attitude_step, hover_hold, tilt_acceleration
 
 def main(argv: list[str] | None = None) -> None:
     """Fly the experiments and print a table; optionally save a step-response figure."""
-    p = argparse.ArgumentParser(prog="python -m shield_nav.demo", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m shield_nav.tools.demo", description=__doc__.splitlines()[0])
     p.add_argument("--plot", default=None, help="save a step-response figure (PNG) to this path")
     args = p.parse_args(argv)
     cfg = VehicleConfig()

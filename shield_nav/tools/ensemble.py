@@ -1,6 +1,6 @@
 """Average several trained depth actors into one exported policy.
 
-``python -m shield_nav.ensemble RUN_OR_CKPT [RUN_OR_CKPT ...] --out DIR``
+``python -m shield_nav.tools.ensemble RUN_OR_CKPT [RUN_OR_CKPT ...] --out DIR``
 
 Each argument is a training checkpoint (``model_<it>.pt``), a run folder (its latest ``model_<it>.pt``) or a packaged
 policy folder (``model.pt``). The members must share the observation layout and the env sections a policy is
@@ -26,7 +26,7 @@ import torch.nn as nn
 
 from envs.config import to_dict, to_yaml
 from shield_nav.evaluation.policies import POLICY_ENV_SECTIONS, _sha256
-from shield_nav.models import ExportedDepthGRU, export_module
+from shield_nav.policies.export import ExportedDepthGRU, export_module
 
 __all__ = ["ExportedEnsemble", "build_ensemble", "member_checkpoint"]
 
@@ -111,7 +111,7 @@ def member_checkpoint(path: str) -> str:
 
 def build_ensemble(paths: list[str], out: str) -> str:
     """Export the ensemble of ``paths`` (see the module docstring) into ``out``; return ``out``."""
-    from shield_nav.package import actor_from_checkpoint
+    from shield_nav.tools.package import actor_from_checkpoint
 
     files = [member_checkpoint(p) for p in paths]
     members, env_sections, cfgs = [], [], []
@@ -145,7 +145,7 @@ def build_ensemble(paths: list[str], out: str) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     """CLI entry point."""
-    p = argparse.ArgumentParser(prog="python -m shield_nav.ensemble", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m shield_nav.tools.ensemble", description=__doc__.splitlines()[0])
     p.add_argument("members", nargs="+", help="model_<it>.pt, a run folder or a packaged policy folder (2 or more)")
     p.add_argument("--out", required=True, help="folder for policy.onnx, policy.pt, params/ and meta.json")
     args = p.parse_args(argv)
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         print(f"ensemble of {len(args.members)} written to {build_ensemble(args.members, args.out)}")
     except (ValueError, FileNotFoundError) as err:
-        p.exit(2, f"python -m shield_nav.ensemble: error: {err}\n")
+        p.exit(2, f"python -m shield_nav.tools.ensemble: error: {err}\n")
 
 
 if __name__ == "__main__":

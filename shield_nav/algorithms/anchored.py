@@ -28,14 +28,15 @@ How it plugs into rsl-rl without copying ``PPO.update``:
   own loss, clipping, optimizer step and logging run unchanged. A test checks the resulting weights against a
   hand-written ``L_PPO + anchor`` step.
 
-Use it as ``runner.algorithm.class_name: "shield_nav.anchored:AnchoredPPO"`` with ``runner.algorithm.anchor_coef``.
+Use it as ``runner.algorithm.class_name: "shield_nav.algorithms.anchored:AnchoredPPO"`` with
+``runner.algorithm.anchor_coef``.
 
 **Kickstarting from the oracle** (``anchor_target: expert``). The reference can instead be the scripted oracle's
 action on every visited state (the ``expert`` observation of oracle DAgger, ``runner.expert``): the term is then
 DAgger's behaviour-cloning loss added to PPO's, which is kickstarting with the oracle as the teacher (Schmitt et al.
 2018). A multi-hypothesis actor is held to the expert by the loss it was distilled with,
-:func:`shield_nav.distillation.wta_loss` over its candidates and scores, so that the term does not average its
-candidates into one; a single head by ``mean((mu - a_expert)^2)``.
+:func:`shield_nav.algorithms.distillation.wta_loss` over its candidates and scores, so that the term does not average
+its candidates into one; a single head by ``mean((mu - a_expert)^2)``.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from rsl_rl.utils import unpad_trajectories
 from tensordict import TensorDict
 from torch import nn
 
-from shield_nav.training.config import ANCHOR_TARGETS
+from shield_nav.algorithms import ANCHOR_TARGETS
 
 __all__ = ["ANCHOR_KEY", "ANCHOR_TARGETS", "AnchoredPPO", "anchor_loss"]
 
@@ -115,7 +116,7 @@ class AnchoredPPO(PPO):
             anchor_target: ``actor_init`` (a frozen copy of the starting actor) or ``expert`` (the ``expert``
                 observation, kickstarting).
             wta_epsilon: ``anchor_target: expert`` with a multi-hypothesis actor only: the relaxation of
-                :func:`shield_nav.distillation.wta_loss`, as in its distillation.
+                :func:`shield_nav.algorithms.distillation.wta_loss`, as in its distillation.
             selection_coef: Likewise, the weight of its score cross-entropy.
             **kwargs: rsl-rl ``PPO``'s other arguments.
         """
@@ -203,7 +204,7 @@ class AnchoredPPO(PPO):
 
         The raw head's output holds the candidates and their scores, before the selection.
         """
-        from shield_nav.distillation import wta_loss
+        from shield_nav.algorithms.distillation import wta_loss
 
         reference = self._reference
         select = self._raw_actor.mlp[1]

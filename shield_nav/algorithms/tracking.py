@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envs.config import require
-from shield_nav.shield import command_from_accel
+from shield_nav.safety.shield import command_from_accel
 
 
 @dataclass
@@ -38,7 +38,7 @@ def accel_to_command(accel_w: np.ndarray, psi: np.ndarray, cfg: TrackingConfig, 
 
     Thrust vector T = a + g e3. Vertical priority: T_z is clipped to [thrust_lo, thrust_hi], the horizontal part
     to |T_xy| <= T_z tan(max_tilt), then T is scaled down to |T| <= thrust_hi. The command follows from T with
-    the shield's inverse model (:func:`shield_nav.shield.command_from_accel`).
+    the shield's inverse model (:func:`shield_nav.safety.shield.command_from_accel`).
     """
     lo, hi = cfg.thrust_range
     t = np.asarray(accel_w, dtype=np.float64) + np.array([0.0, 0.0, gravity])

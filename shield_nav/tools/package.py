@@ -1,11 +1,11 @@
 """Package a training checkpoint as a committed policy: ``checkpoints/<name>/``.
 
-``python -m shield_nav.package logs/shield_nav/<run>/model_<it>.pt --name dijkstra_cbf``
+``python -m shield_nav.tools.package logs/shield_nav/<run>/model_<it>.pt --name dijkstra_cbf``
 
 writes ``checkpoints/<name>/`` with the rsl-rl checkpoint (``model.pt``: actor, critic and optimizer, resumable
 with ``train.py --resume``), the resolved training config (``params/config.yaml``), the exported actor
 (``policy.onnx`` and TorchScript ``policy.pt``), the run's tensorboard scalars up to that iteration
-(``curves.csv``, the reference for ``shield_nav.compare_runs``) and a ``meta.json`` (iteration, env steps,
+(``curves.csv``, the reference for ``shield_nav.tools.compare_runs``) and a ``meta.json`` (iteration, env steps,
 wall time, source run, sha256 of every file).
 
 A distillation checkpoint packages its student (the deployable CNN+GRU). A privileged teacher (an ``MLPModel`` over
@@ -27,9 +27,10 @@ from tensordict import TensorDict
 
 from envs.config import stored_config, to_yaml
 from envs.navigation import STATE_DIM
-from shield_nav.compare_runs import read_events, write_csv
 from shield_nav.evaluation.policies import _sha256
-from shield_nav.models import DepthGRUModel, export_policy
+from shield_nav.policies.export import export_policy
+from shield_nav.policies.models import DepthGRUModel
+from shield_nav.tools.compare_runs import read_events, write_csv
 from shield_nav.training import TrainConfig, load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
 
 
@@ -113,7 +114,7 @@ def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:
 
 def main(argv: list[str] | None = None) -> None:
     """CLI entry point."""
-    p = argparse.ArgumentParser(prog="python -m shield_nav.package", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m shield_nav.tools.package", description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", help="model_<it>.pt of a training run")
     p.add_argument("--name", required=True, help="policy name (folder under --out)")
     p.add_argument("--out", default="checkpoints", help="root folder (default: checkpoints)")

@@ -1,6 +1,6 @@
 """A sampling tracker for the planning expert: model-predictive path integral control (MPPI) on the ESDF.
 
-The planning expert (:mod:`shield_nav.expert`) plans a path and a speed profile, then turns them into an
+The planning expert (:mod:`shield_nav.algorithms.expert`) plans a path and a speed profile, then turns them into an
 acceleration with a tracker. The ``tangent`` and ``preview`` trackers follow the plan whatever lies beside it: when
 the vehicle strays (the inner loop's lag, a route that changes under it), nothing in the command knows where the
 obstacles are. This tracker does: it samples acceleration sequences round its last plan, predicts each on the inner
@@ -8,17 +8,18 @@ loop's first-order model, scores the predictions on the timed reference *and on 
 the cost-weighted mean of the sampled first inputs (Williams et al., "Information theoretic MPC for model-based
 reinforcement learning", ICRA 2017: the path-integral weights ``exp(-(S_k - min S) / lambda)``).
 
-**Model** (the preview tracker's, :mod:`shield_nav.preview`): per world axis ``p' = v``, ``v' = a + d``,
+**Model** (the preview tracker's, :mod:`shield_nav.algorithms.preview`): per world axis ``p' = v``, ``v' = a + d``,
 ``a' = (u - a) / tau``, inputs held over intervals of ``dt``, discretised exactly; ``d`` the nominal drag at the
 current velocity, held. Each sampled input is clamped to the tilt cone ``|u_xy| <= (g + u_z) tan(max_tilt)`` and to
-``|u_z| <= vert_accel``, as :func:`shield_nav.tracking.accel_to_command` will clamp the command.
+``|u_z| <= vert_accel``, as :func:`shield_nav.algorithms.tracking.accel_to_command` will clamp the command.
 
 **Cost** of a rollout, summed over its ``steps`` predicted states ``(p_k, v_k)``:
-``q_pos |p_k - r_k|^2 + q_vel |v_k - w_k|^2`` (the timed reference, :func:`shield_nav.preview.timed_reference`)
-``+ w_clear max(0, clearance - d(p_k))^2 + w_crash [d(p_k) < radius]`` with ``d`` the ESDF (floor and ceiling
-included) and ``radius`` the vehicle's collision radius, ``+ r_acc |u_k|^2``. With a height cap ``z_cap`` (finite
-per env) ``d`` is ``min(ESDF, z_cap - z_k)``: the plane ``z = z_cap`` counts as one more ceiling (the expert's
-``mppi_below_tops`` puts it where a sphere would pass over the obstacles' tops).
+``q_pos |p_k - r_k|^2 + q_vel |v_k - w_k|^2`` (the timed reference,
+:func:`shield_nav.algorithms.preview.timed_reference`) ``+ w_clear max(0, clearance - d(p_k))^2 + w_crash [d(p_k) <
+radius]`` with ``d`` the ESDF (floor and ceiling included) and ``radius`` the vehicle's collision radius, ``+ r_acc
+|u_k|^2``. With a height cap ``z_cap`` (finite per env) ``d`` is ``min(ESDF, z_cap - z_k)``: the plane ``z = z_cap``
+counts as one more ceiling (the expert's ``mppi_below_tops`` puts it where a sphere would pass over the obstacles'
+tops).
 
 **Samples.** ``samples`` sequences per env: sample 0 is the last plan advanced by the control period (its last
 input repeated), sample 1 holds the nominal command (the preview tracker's) over the horizon, the others add Gaussian
@@ -35,7 +36,7 @@ import numba
 import numpy as np
 
 from envs.fields.lookup import trilinear_point
-from shield_nav.preview import discretise
+from shield_nav.algorithms.preview import discretise
 
 
 @numba.njit(cache=True, fastmath=False, parallel=True)
@@ -62,11 +63,11 @@ def rollout_costs(
     """Costs ``out`` (N, S) of input sequences ``u`` (N, S, T, 3) from states ``x0`` (N, 3 axes, [p, v, a]).
 
     ``drag`` (N, 3) is held; ``ref_p``, ``ref_v`` (N, T, 3) the reference at the ends of the T intervals;
-    ``a_mat`` (3, 3), ``b_vec`` and ``e_vec`` (3,) the per-axis discretisation (:func:`shield_nav.preview.discretise`);
-    ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin, res, esdf)``; ``z_cap`` (N,) a height per
-    env whose plane counts as a ceiling in the clearance and crash terms (``inf``: none); ``clearance`` (N,) the ESDF
-    below which each env's predicted positions pay ``w_clear``. The inputs must already lie in the flyable set
-    (:func:`clamp_inputs`).
+    ``a_mat`` (3, 3), ``b_vec`` and ``e_vec`` (3,) the per-axis discretisation
+    (:func:`.preview.discretise`); ``e`` the ESDF's kernel fields ``(index (N,), offset, shape, origin,
+    res, esdf)``; ``z_cap`` (N,) a height per env whose plane counts as a ceiling in the clearance and crash terms
+    (``inf``: none); ``clearance`` (N,) the ESDF below which each env's predicted positions pay ``w_clear``. The inputs
+    must already lie in the flyable set (:func:`clamp_inputs`).
     """
     n, s_count, t_count, _ = u.shape
     for job in numba.prange(n * s_count):  # rollouts are independent: numba's threads split them

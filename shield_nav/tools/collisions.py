@@ -1,6 +1,6 @@
 """Collision and time-out breakdowns of an eval output: what did the crashes hit, how did the time-outs end?
 
-``python -m shield_nav.collisions eval_out/ablation [--rows a,b] [--speeds 3,5] [--json]``
+``python -m shield_nav.tools.collisions eval_out/ablation [--rows a,b] [--speeds 3,5] [--json]``
 
 reads the per-unit trial files of an ``eval.py`` output folder, takes the last recorded position of every trial
 that ended in a collision, regenerates the unit's scene (scenes are pure functions of family, index and seed) and
@@ -28,8 +28,8 @@ shield acting.
 ``--timeouts`` asks about the flights that ran out of time instead: did each one stall (no metre of closing on the
 goal in its last 5 s: circling or hovering in a pocket), or was it still on its way (too slow)? It reports, per row
 and speed, the stalled count, when the stalled flights last closed in and how far they were left, and the closing
-flights' distance left and closing speed (:func:`timeouts`; the stall rule is :class:`shield_nav.escape.StallEscape`'s),
-and how many of them circled (below).
+flights' distance left and closing speed (:func:`timeouts`; the stall rule is
+:class:`shield_nav.safety.escape.StallEscape`'s), and how many of them circled (below).
 
 ``--circling`` asks of every flight, whatever its outcome, whether it flew in circles: whether its heading turned
 through :data:`CIRCLE_TURNS` full turns or more, net, within some :data:`CIRCLE_WINDOW_S` of the flight
@@ -259,7 +259,7 @@ def _crashes(
 
 
 def last_progress(times: np.ndarray, dist: np.ndarray, min_progress: float) -> float:
-    """Time [s] of a flight's last progress (the stall rule of :class:`shield_nav.escape.StallEscape`).
+    """Time [s] of a flight's last progress (the stall rule of :class:`shield_nav.safety.escape.StallEscape`).
 
     The last time its distance to the goal went ``min_progress`` below its best since the previous such time.
     """

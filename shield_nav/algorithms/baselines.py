@@ -27,9 +27,12 @@ import numpy as np
 
 from envs.camera import depth_to_points
 from envs.config import require
-from shield_nav.escape import CameraMap, EscapeConfig
-from shield_nav.expert import CameraMapPlanner, ExpertConfig, PlannerController
-from shield_nav.tracking import TrackingConfig, accel_to_command
+from shield_nav.algorithms.expert import PlannerController
+from shield_nav.algorithms.expert_cammap import CameraMapPlanner
+from shield_nav.algorithms.expert_config import ExpertConfig
+from shield_nav.algorithms.tracking import TrackingConfig, accel_to_command
+from shield_nav.safety.camera_map import CameraMap
+from shield_nav.safety.escape import EscapeConfig
 
 
 @dataclass
@@ -116,8 +119,8 @@ class ReactiveConfig:
     ``camera_map.replan_s``: the ``reactive_map`` row, depth only). Same local avoidance, different global
     guidance."""
     camera_map: EscapeConfig = field(default_factory=lambda: EscapeConfig(kind="map"))
-    """``guidance: map``: the map and its plan (:class:`shield_nav.escape.CameraMap`); only its ``map_*`` keys,
-    ``replan_s``, ``lookahead`` and ``goal_radius`` are read."""
+    """``guidance: map``: the map and its plan (:class:`shield_nav.safety.camera_map.CameraMap`); only its ``map_*``
+    keys, ``replan_s``, ``lookahead`` and ``goal_radius`` are read."""
 
     def validate(self, prefix: str = "") -> None:
         """A known guidance and a valid map."""
@@ -137,7 +140,7 @@ class BaselineConfig:
     reactive: ReactiveConfig = field(default_factory=ReactiveConfig)
     """Reactive depth planner."""
     expert: ExpertConfig = field(default_factory=ExpertConfig)
-    """Privileged planning expert (:mod:`shield_nav.expert`)."""
+    """Privileged planning expert (:mod:`shield_nav.algorithms.expert`)."""
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -153,7 +156,7 @@ class MapGuide:
     """Guidance from the map of what each flight's own camera has shown (the reactive planner's ``guidance: map``).
 
     At control steps that are multiples of ``map_every`` it marks the flights' depth images in a
-    :class:`shield_nav.escape.CameraMap`; every ``replan_s`` it replans each flight's Dijkstra over that map
+    :class:`shield_nav.safety.camera_map.CameraMap`; every ``replan_s`` it replans each flight's Dijkstra over that map
     (unmapped space free) and keeps the point ``lookahead`` metres along it. The guide is the unit direction to that
     point horizontally and to the goal's height vertically, or straight at the goal where the plan reaches the goal
     region. Reads nothing privileged.
@@ -489,7 +492,7 @@ class OracleExpert:
 
 
 class PlannerExpert(OracleExpert):
-    """The planning expert (:class:`shield_nav.expert.PlannerController`) as a DAgger expert.
+    """The planning expert (:class:`shield_nav.algorithms.expert.PlannerController`) as a DAgger expert.
 
     Its route hysteresis (``expert.commit_dist``) remembers each env's last path: it is asked once per env step (the
     adapter does), and an env whose episode restarts gets a fresh path, so the label still follows the state the
@@ -501,7 +504,7 @@ class PlannerExpert(OracleExpert):
 
 
 class CameraMapExpert(OracleExpert):
-    """The camera-routed planning expert (:class:`shield_nav.expert.CameraMapPlanner`) as a DAgger expert.
+    """The camera-routed planning expert (:class:`~shield_nav.algorithms.expert_cammap.CameraMapPlanner`), for DAgger.
 
     Its route comes from the map of what each env's own camera has shown, so its labels turn where the images (and
     their memory) explain a turn, not where only the scene's map would. In training, envs restart on their own: an

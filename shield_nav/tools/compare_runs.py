@@ -1,6 +1,6 @@
 """Training curves: export a run's tensorboard scalars to CSV, and overlay a run on a committed reference.
 
-``python -m shield_nav.compare_runs RUN_DIR --reference checkpoints/dijkstra_cbf [--out FIG.png]`` reads the
+``python -m shield_nav.tools.compare_runs RUN_DIR --reference checkpoints/dijkstra_cbf [--out FIG.png]`` reads the
 run's tensorboard events and the reference's ``curves.csv`` and plots the curves that explain a run (success rate,
 collisions, return, curriculum level, speed) against iterations, then prints where the run stands at the last
 iteration both share. ``--export RUN_DIR OUT.csv`` writes a run's scalars to CSV (how the references were made).
@@ -128,7 +128,7 @@ def compare(run: str, references: list[str], out: str | None) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> None:
     """CLI entry point."""
-    p = argparse.ArgumentParser(prog="python -m shield_nav.compare_runs", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m shield_nav.tools.compare_runs", description=__doc__.splitlines()[0])
     p.add_argument("run", help="your run folder (logs/<experiment>/<timestamp>_<name>)")
     p.add_argument("--reference", action="append", default=[], help="committed checkpoint folder(s) or CSV")
     p.add_argument("--out", default=None, help="figure path (default RUN/compare.png)")

@@ -1,16 +1,16 @@
 """How much of the expert's route does the depth camera see? A measure of what a depth student can imitate.
 
-``python -m shield_nav.route_view [--scenes benchmark:0-15] [--scene-seed 1150000] [--speed 3] [--steps 600]
+``python -m shield_nav.tools.route_view [--scenes benchmark:0-15] [--scene-seed 1150000] [--speed 3] [--steps 600]
 [--json]``
 
-flies the privileged planning expert (:mod:`shield_nav.expert`, rendering off) and, at every control step of every
-env, takes the path it plans (down the geodesic field, 14 m) and asks how far along it the depth camera sees:
+flies the privileged planning expert (:mod:`shield_nav.algorithms.expert`, rendering off) and, at every control step of
+every env, takes the path it plans (down the geodesic field, 14 m) and asks how far along it the depth camera sees:
 
 * ``seen_m``: the arc length of the path's longest prefix whose samples are all seen
-  (:func:`shield_nav.expert.visible_samples`: in the frustum and range, line of sight clear by the ESDF), capped at
-  the path's length. Samples within ``near_m`` (default 1 m) of the vehicle along the path count as seen: the
-  vehicle is passing through them, and there the frustum is narrower than the vehicle's own sway (a sample 0.3 m
-  ahead leaves the 87 deg view 0.3 m aside);
+  (:func:`shield_nav.algorithms.expert_paths.visible_samples`: in the frustum and range, line of sight clear by the
+  ESDF), capped at the path's length. Samples within ``near_m`` (default 1 m) of the vehicle along the path count as
+  seen: the vehicle is passing through them, and there the frustum is narrower than the vehicle's own sway (a sample 0.3
+  m ahead leaves the 87 deg view 0.3 m aside);
 * the reason its first unseen sample is unseen: ``fov`` (outside the frustum or beyond the range) or ``occluded``
   (inside the frustum, an obstacle on the line of sight);
 * ``short``: the share of steps whose ``seen_m`` is below the stopping distance at the current speed,
@@ -42,8 +42,9 @@ import numpy as np
 
 from envs.camera.model import camera_poses
 from envs.scenes import FAMILIES, make_scene
+from shield_nav.algorithms.expert import PlannerController
+from shield_nav.algorithms.expert_paths import flight_env, visible_samples
 from shield_nav.evaluation.config import EvalError, parse_scenes
-from shield_nav.expert import PlannerController, flight_env, visible_samples
 
 
 def seen_prefix(path: np.ndarray, seen: np.ndarray, in_fov: np.ndarray, near_m: float = 0.0,
@@ -76,7 +77,7 @@ def measure(family: str, indices: list[int], scene_seed: int | None, speed: floa
             seed: int = 0, margin_m: float = 1.0, near_m: float = 1.0, away_at_m: float = 3.0) -> dict:  # fmt: skip
     """Fly the expert ``steps`` control steps in ``num_envs`` envs of each scene; per-scene view statistics."""
     from envs.navigation import NavigationEnv
-    from shield_nav.baselines import BaselineConfig
+    from shield_nav.algorithms.baselines import BaselineConfig
 
     scenes = {}
     for scene in indices:  # one env per scene, so every scene gets the same number of samples
@@ -160,7 +161,7 @@ def format_table(res: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.route_view", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.route_view", description=__doc__.split("\n")[0])
     ap.add_argument(
         "--scenes", default="benchmark:0-15", help="FAMILY or FAMILY:INDICES, as eval.py (default benchmark:0-15)"
     )

@@ -1,8 +1,8 @@
 """Is row B better than row A? A paired comparison of two evaluated rows over the same seeded trials.
 
-``python -m shield_nav.paired OUT_A:ROW_A OUT_B:ROW_B [OUT_A2:ROW_A2 OUT_B2:ROW_B2 ...] [--speeds 3] [--below-tops]
-[--json]``, e.g.
-``python -m shield_nav.paired eval_out/ablation:oracle_distilled eval_out/ablation:oracle_distilled_shield``
+``python -m shield_nav.tools.paired OUT_A:ROW_A OUT_B:ROW_B [OUT_A2:ROW_A2 OUT_B2:ROW_B2 ...] [--speeds 3]
+[--below-tops] [--json]``, e.g.
+``python -m shield_nav.tools.paired eval_out/ablation:oracle_distilled eval_out/ablation:oracle_distilled_shield``
 
 Every ``eval.py`` row flies the same pinned trials (trial ``j`` of scene ``k`` at speed ``v`` has one seed, start and
 goal, whatever the row, the worker count or the output folder). Two rows can therefore be compared trial by trial,
@@ -404,7 +404,7 @@ def format_report(res: dict, single: bool = True) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point."""
-    ap = argparse.ArgumentParser(prog="python -m shield_nav.paired", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m shield_nav.tools.paired", description=__doc__.split("\n")[0])
     ap.add_argument("specs", nargs="+", metavar="OUT_DIR:ROW",
                     help="A then B, e.g. eval_out/ablation:oracle_distilled_shapes_3ms eval_out/ablation:oracle; "
                          "more A B pairs (replicates, e.g. training seeds) are reported and pooled")  # fmt: skip

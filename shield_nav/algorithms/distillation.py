@@ -17,7 +17,7 @@ The relaxed term (``wta_epsilon``) keeps the losing candidates near the data, so
 cross-entropy term (``selection_coef``) teaches the scores to pick the candidate the expert would agree with.
 Everything else (rollout storage, truncated BPTT, hidden states, optimizer, checkpoints) is rsl-rl's own
 ``Distillation``; only its loss function is replaced. Use it as
-``runner.algorithm.class_name: "shield_nav.distillation:MultiHypothesisDistillation"``.
+``runner.algorithm.class_name: "shield_nav.algorithms.distillation:MultiHypothesisDistillation"``.
 
 Both students can also anneal the learning rate (:class:`ScheduledDistillation`): rsl-rl's ``Distillation`` keeps
 it constant, and with a constant 1e-3 the behaviour-cloning loss of a converged student stays as noisy as the
@@ -110,7 +110,7 @@ class ScheduledDistillation(Distillation):
     R2D2's stored-state replay) and is fitted with the same truncated BPTT. Its loss is logged as ``Loss/replay``.
     The buffer is not checkpointed: a resumed run refills it.
 
-    Use it as ``runner.algorithm.class_name: "shield_nav.distillation:ScheduledDistillation"``.
+    Use it as ``runner.algorithm.class_name: "shield_nav.algorithms.distillation:ScheduledDistillation"``.
     """
 
     def __init__(
@@ -270,7 +270,7 @@ class MultiHypothesisDistillation(ScheduledDistillation):
 
         Args:
             student: The multi-hypothesis student.
-            teacher: The teacher (e.g. ``shield_nav.models:ExpertTeacher``).
+            teacher: The teacher (e.g. ``shield_nav.policies.models:ExpertTeacher``).
             storage: rsl-rl rollout storage.
             wta_epsilon: Relaxation of the winner-takes-all loss, in [0, 1).
             selection_coef: Weight of the score cross-entropy, >= 0.

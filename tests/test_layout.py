@@ -113,6 +113,23 @@ def test_the_library_does_not_import_the_harness_or_the_tools(graph):
     assert not {m: d for m, d in bad.items() if d}
 
 
+def test_only_the_tools_and_benchmarks_import_the_tools():
+    """The tools sit on top: nothing below them imports one, not even inside a function (the ``ast.walk`` here)."""
+    below = {
+        m: p for m, p in _modules("shield_nav").items() if not m.startswith(("shield_nav.tools", "shield_nav.bench"))
+    }
+    bad = {}
+    for m, path in below.items():
+        with open(path, encoding="utf-8") as f:
+            tree = ast.parse(f.read())
+        for node in ast.walk(tree):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            bad.setdefault(m, []).extend(n for n in names if n.startswith("shield_nav.tools"))
+    assert not {m: d for m, d in bad.items() if d}
+
+
 def test_no_import_circle(graph):
     edges, _ = graph
     circle = find_circle(edges)

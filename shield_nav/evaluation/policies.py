@@ -385,7 +385,7 @@ def _checkpoint_export(file: str, name: str) -> Any:
     TorchScript.
     """
     from shield_nav.policies.export import ExportedDepthGRU
-    from shield_nav.tools.package import actor_from_checkpoint
+    from shield_nav.training.actor import actor_from_checkpoint
 
     try:
         model, _, _ = actor_from_checkpoint(file)

@@ -111,7 +111,7 @@ def member_checkpoint(path: str) -> str:
 
 def build_ensemble(paths: list[str], out: str) -> str:
     """Export the ensemble of ``paths`` (see the module docstring) into ``out``; return ``out``."""
-    from shield_nav.tools.package import actor_from_checkpoint
+    from shield_nav.training.actor import actor_from_checkpoint
 
     files = [member_checkpoint(p) for p in paths]
     members, env_sections, cfgs = [], [], []

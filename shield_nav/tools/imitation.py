@@ -156,8 +156,8 @@ def measure(ckpt: str, speed: float = 3.0, level: int = 8, steps: int = 400, num
     """
     import torch
 
-    from shield_nav.tools.package import actor_from_checkpoint
     from shield_nav.training import make_env
+    from shield_nav.training.actor import actor_from_checkpoint
 
     path = os.path.join(ckpt, "model.pt") if os.path.isdir(ckpt) else ckpt
     model, cfg, meta = actor_from_checkpoint(path)

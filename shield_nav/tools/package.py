@@ -21,49 +21,11 @@ import json
 import os
 import shutil
 
-import torch
-from rsl_rl.utils import resolve_callable
-from tensordict import TensorDict
-
-from envs.config import stored_config, to_yaml
-from envs.navigation import STATE_DIM
+from envs.config import to_yaml
 from shield_nav.evaluation.policies import _sha256
 from shield_nav.policies.export import export_policy
-from shield_nav.policies.models import DepthGRUModel
 from shield_nav.tools.compare_runs import read_events, write_csv
-from shield_nav.training import TrainConfig, load_train_config, read_checkpoint_infos, rsl_rl_train_cfg
-
-
-def actor_from_checkpoint(ckpt_path: str) -> tuple[DepthGRUModel | None, TrainConfig, dict]:
-    """Rebuild the deployable actor of a checkpoint from its stored config (no env needed).
-
-    PPO checkpoints give their actor, distillation checkpoints their student; a privileged teacher (its actor is not
-    a ``DepthGRUModel``) gives ``None``.
-    """
-    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    infos = read_checkpoint_infos(ckpt_path)
-    stored = infos.get("config")
-    cfg = load_train_config(overrides=stored_config(TrainConfig, stored)) if isinstance(stored, dict) else None
-    if cfg is None:
-        raise ValueError(f"{ckpt_path}: the checkpoint carries no resolved config")
-    meta = {"iter": int(ckpt["iter"]), **{k: v for k, v in infos.items() if k != "config"}}
-    if isinstance(meta.get("weight_average"), dict):  # a running average's tensors do not belong in meta.json
-        meta["weight_average"] = {k: v for k, v in meta["weight_average"].items() if k != "mean"}
-    distilled = cfg.runner.class_name == "DistillationRunner"
-    obs_set, key = ("student", "student_state_dict") if distilled else ("actor", "actor_state_dict")
-    train_cfg = rsl_rl_train_cfg(cfg)
-    if resolve_callable(train_cfg[obs_set]["class_name"]) is not DepthGRUModel:
-        return None, cfg, meta
-    cam = cfg.env.camera
-    obs = TensorDict(
-        {"depth": torch.zeros(1, 1, cam.height, cam.width), "state": torch.zeros(1, STATE_DIM)}, batch_size=[1]
-    )
-    groups = {obs_set: cfg.runner.obs_groups[obs_set]}
-    actor_kwargs = {k: v for k, v in train_cfg[obs_set].items() if k != "class_name"}
-    model = DepthGRUModel(obs, groups, obs_set, 4, **actor_kwargs)
-    model.load_state_dict(ckpt[key])
-    model.eval()
-    return model, cfg, meta
+from shield_nav.training.actor import actor_from_checkpoint
 
 
 def package(ckpt_path: str, name: str, out_root: str = "checkpoints") -> str:

@@ -58,7 +58,7 @@ def test_ppo_on_cuda_checkpoints_resume_on_either_device_and_export_the_trained_
     # The export is the trained actor: the ONNX file and the checkpoint's weights (rebuilt on the CPU) agree.
     from tensordict import TensorDict
 
-    from shield_nav.tools.package import actor_from_checkpoint
+    from shield_nav.training.actor import actor_from_checkpoint
 
     model, _, _ = actor_from_checkpoint(os.path.join(run, "model_1.pt"))
     rng = np.random.default_rng(1)

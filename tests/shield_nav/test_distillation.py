@@ -287,7 +287,7 @@ def test_train_cli_warm_starts_a_multi_hypothesis_student_and_exports_it(tmp_pat
 
     import onnxruntime as ort
 
-    from shield_nav.tools.package import actor_from_checkpoint
+    from shield_nav.training.actor import actor_from_checkpoint
 
     # A single-head student to start from (none ships in the release): one DAgger iteration from the oracle.
     single = str(tmp_path / "single")
@@ -432,11 +432,11 @@ def test_imitation_flies_the_requested_level_when_the_checkpoint_trained_without
     # A student trained with the curriculum off (scenes sampled uniformly per episode) used to be measured on every
     # scene of its list whatever --level said: resets ignored the level. Every episode must be on scene indices[k]
     # (4 envs on 3 scenes all land on the requested one by chance with probability 1/81).
-    import shield_nav.tools.package as package
     import shield_nav.training as training
+    import shield_nav.training.actor as actor
     from shield_nav.tools.imitation import measure
 
-    real_load, real_make = package.actor_from_checkpoint, training.make_env
+    real_load, real_make = actor.actor_from_checkpoint, training.make_env
 
     def load_uniform(path):
         model, cfg, meta = real_load(path)
@@ -458,7 +458,7 @@ def test_imitation_flies_the_requested_level_when_the_checkpoint_trained_without
         env.step = recording_step
         return env
 
-    monkeypatch.setattr(package, "actor_from_checkpoint", load_uniform)
+    monkeypatch.setattr(actor, "actor_from_checkpoint", load_uniform)
     monkeypatch.setattr(training, "make_env", make_recording)
     out = measure("checkpoints/student", level=2, steps=40, num_envs=4)
     assert {s for step in seen for s in step} == {7}

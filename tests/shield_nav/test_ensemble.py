@@ -14,7 +14,7 @@ from tensordict import TensorDict
 from shield_nav import evaluation as E
 from shield_nav.policies.models import DepthGRUModel
 from shield_nav.tools.ensemble import ExportedEnsemble, build_ensemble, member_checkpoint
-from shield_nav.tools.package import actor_from_checkpoint
+from shield_nav.training.actor import actor_from_checkpoint
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Three real trained depth actors of one observation layout and one training env (the shipped release).

@@ -164,7 +164,7 @@ def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
     which would drop the second ELU. The actor read from an eager export has an ELU after each hidden layer, as the
     TorchScript file of the same weights has."""
     from shield_nav.policies.export import ExportedDepthGRU
-    from shield_nav.tools.package import actor_from_checkpoint
+    from shield_nav.training.actor import actor_from_checkpoint
 
     model, _, _ = actor_from_checkpoint(os.path.join(ROOT, "checkpoints", "student", "model.pt"))
     module = ExportedDepthGRU(model)

@@ -219,7 +219,8 @@ def test_teacher_then_distillation_with_rsl_rl_runners(tmp_path):
     assert "curriculum off: the levels stored in" in res.stdout and "curriculum levels restored" not in res.stdout
 
     # Packaging: the teacher without exports (not deployable), the student with an ONNX that matches its weights.
-    from shield_nav.tools.package import actor_from_checkpoint, package
+    from shield_nav.tools.package import package
+    from shield_nav.training.actor import actor_from_checkpoint
 
     out_t = package(teacher_ckpt, "teacher", str(tmp_path / "ck"))
     assert "policy.onnx" not in os.listdir(out_t) and actor_from_checkpoint(teacher_ckpt)[0] is None

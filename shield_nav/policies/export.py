@@ -7,6 +7,7 @@ model.
 from __future__ import annotations
 
 import copy
+import logging
 import os
 import warnings
 from typing import TYPE_CHECKING
@@ -79,7 +80,7 @@ def export_policy(
     """Write TorchScript and ONNX exports of ``model`` with a dynamic batch dimension; return their paths.
 
     The ONNX graph has inputs ``obs (B, S)``, ``<depth group> (B, C, H, W)``, ``h_in (L, B, Hd)`` and outputs
-    ``actions (B, A)``, ``h_out (L, B, Hd)`` (opset 18, TorchScript-based exporter, which handles ``nn.GRU``).
+    ``actions (B, A)``, ``h_out (L, B, Hd)`` (opset 18, the ``torch.export``-based exporter, a dynamic batch).
     """
     return export_module(model.as_onnx(verbose=False), out_dir, jit_name, onnx_name)
 
@@ -97,21 +98,29 @@ def export_module(
     onnx_path = os.path.join(out_dir, onnx_name)
     exp.eval()
     torch.jit.script(exp).save(jit_path)
-    dynamic = {name: {0: "batch"} for name in exp.input_names[:-1]}
-    dynamic.update({"h_in": {1: "batch"}, "actions": {0: "batch"}, "h_out": {1: "batch"}})
+    # torch.export specialises a dimension of size 1, so the example batch has two rows; the batch is dynamic.
+    obs, depth, h_in = exp.get_dummy_inputs()
+    example = (obs.repeat(2, 1), depth.repeat(2, 1, 1, 1), h_in.repeat(1, 2, 1))
+    batch = torch.export.Dim("batch", min=1, max=65536)
     with torch.no_grad(), warnings.catch_warnings():
-        # The exporter warns about GRU batch sizes unless h0 is a graph input; here it is (h_in).
-        warnings.filterwarnings("ignore", message=".*with a variable length with GRU.*")
-        warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
-        torch.onnx.export(
-            exp,
-            exp.get_dummy_inputs(),
-            onnx_path,
-            export_params=True,
-            opset_version=18,
-            input_names=exp.input_names,
-            output_names=exp.output_names,
-            dynamic_axes=dynamic,
-            dynamo=False,
-        )
+        warnings.filterwarnings("ignore", category=FutureWarning)  # torch.export's notices about its own internals
+        warnings.filterwarnings("ignore", message=r".*axis name: batch will not be used.*")  # one Dim for three inputs
+        warnings.filterwarnings("ignore", message=r".*_flat_weights.*were assigned during export.*")  # nn.GRU's
+        registration = logging.getLogger("torch.onnx._internal.exporter._registration")
+        level = registration.level
+        registration.setLevel(logging.ERROR)  # it names the torchvision ops it skips; no policy uses them
+        try:
+            torch.onnx.export(
+                exp,
+                example,
+                onnx_path,
+                input_names=exp.input_names,
+                output_names=exp.output_names,
+                dynamic_shapes=({0: batch}, {0: batch}, {1: batch}),
+                opset_version=18,
+                dynamo=True,
+                verbose=False,
+            )
+        finally:
+            registration.setLevel(level)
     return {"jit": jit_path, "onnx": onnx_path}

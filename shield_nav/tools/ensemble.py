@@ -68,7 +68,7 @@ class ExportedEnsemble(nn.Module):
         acts: list[torch.Tensor] = []
         outs: list[torch.Tensor] = []
         for k, member in enumerate(self.members):
-            a, h = member(obs, depth, h_in[:, :, k * hd : (k + 1) * hd])
+            a, h = member(obs, depth, h_in[:, :, k * hd : (k + 1) * hd].contiguous())  # a GRU state of its own
             acts.append(torch.clamp(a, -1.0, 1.0))
             outs.append(h)
         return torch.stack(acts, dim=0).mean(dim=0), torch.cat(outs, dim=2)

@@ -218,6 +218,17 @@ def test_jit_and_onnx_exports_match_torch_actor(tmp_path, k):
             h_onnx = h_onnx.copy()
             h_onnx[:, 1] = 0.0
     assert k == 1 or len(picked) > 1  # more than one candidate was chosen over the 15 (env, step) pairs
+    # The batch is dynamic (the export's example had two rows), and a second export writes the same ONNX bytes.
+    big = make_obs(7, gen)
+    m.reset()
+    with torch.no_grad():
+        ref = m(big)
+    a7, _ = sess.run(None, {"obs": big["state"].numpy(), "depth": big["depth"].numpy(),
+                            "h_in": np.zeros((1, 7, 16), dtype=np.float32)})  # fmt: skip
+    np.testing.assert_allclose(a7, ref.numpy(), rtol=1e-4, atol=1e-5)
+    again = export_policy(m, str(tmp_path / "again"))
+    with open(paths["onnx"], "rb") as f1, open(again["onnx"], "rb") as f2:
+        assert f1.read() == f2.read()
 
 
 def test_one_real_ppo_update_changes_the_actor():

@@ -46,6 +46,7 @@ from envs.navigation.config import NavConfig
 from shield_nav.algorithms.baselines import BaselineConfig, make_baseline
 from shield_nav.evaluation.policies import LoadedPolicy, load_policy
 from shield_nav.safety.escape import EscapeConfig, StallEscape
+from shield_nav.safety.fence import env_fence, fence_boxes
 from shield_nav.safety.shield import HOCBFShield, ShieldConfig, ShieldOutput
 
 __all__ = ["PilotStep", "ShieldedPilot"]
@@ -162,6 +163,7 @@ class ShieldedPilot:
         self.shield = HOCBFShield(shield, self.camera) if shield is not None else None
         self.goal = np.full((n, 3), np.nan)
         self.target_speed = np.full(n, np.nan)
+        self.fence = np.full((n, 2, 2), np.nan)
         self.prev_action = np.zeros((n, 4))
         self.h = policy.initial_state(n)
         self.command_dt = float(nav.vehicle.command_dt)
@@ -214,7 +216,9 @@ class ShieldedPilot:
         vel, r_wb = np.tile([3.0, 0.0, 0.0], (n, 1)), np.tile(np.eye(3), (n, 1, 1))
         for dtype in (np.float32, np.float64):  # the kernels are compiled per type: a camera's image may be either
             wall, blind = np.full((n, 1, h, w), 4.0, dtype=dtype), np.zeros((n, 1, h, w), dtype=dtype)
-            scratch.reset(np.tile([60.0, 0.0, 1.5], (n, 1)), 3.0, volume=((0.0, -10.0, 0.0), (70.0, 10.0, 4.0)))
+            fence = ((0.0, -10.0), (70.0, 10.0)) if self.shield is not None and self.shield.cfg.fence else None
+            scratch.reset(np.tile([60.0, 0.0, 1.5], (n, 1)), 3.0, volume=((0.0, -10.0, 0.0), (70.0, 10.0, 4.0)),
+                          fence=fence)  # fmt: skip
             scratch.step(wall, pos, vel, r_wb)
             if scratch._escape is not None:
                 scratch._escape.guided[:] = True  # as if every vehicle had stalled: the planner plans them next step
@@ -235,13 +239,15 @@ class ShieldedPilot:
     def __exit__(self, *exc: object) -> None:  # noqa: D105
         self.close()
 
-    def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None) -> None:
+    def reset(self, goal: Any, target_speed: Any, ids: Any = None, volume: Any = None, fence: Any = None) -> None:
         """Start flights for vehicles ``ids`` (all if None): their goal (M, 3) [m] and target speed (M,) or one [m/s].
 
         Zeroes their recurrent state and previous action and clears their shield memory, as a new episode does.
         With a handover: ``volume`` = (lo, hi), the flight volume's corners (3,) [m] in the goal's frame (the
         planner keeps inside it and maps within it), and every vehicle starts (``ids`` None); its stall clocks,
-        maps and planner start afresh.
+        maps and planner start afresh. With the shield's geofence on (``shield.fence``): ``fence`` (2, 2) or
+        (M, 2, 2), the geofence ``[[x_lo, y_lo], [x_hi, y_hi]]`` [m] in the goal's frame, whose sides the shield
+        keeps the vehicles inside (docs/shield.md, "Geofence").
         """
         if self.handover is not None:
             if ids is not None and len(np.unique(np.atleast_1d(ids))) != self.num_vehicles:
@@ -251,12 +257,17 @@ class ShieldedPilot:
                     f"reset: with a handover give volume=(lo, hi), two finite (3,) corners; got {volume!r}"
                 )
         sel = np.arange(self.num_vehicles) if ids is None else np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        fenced = self.shield is not None and self.shield.cfg.fence
+        if fenced or fence is not None:  # checked (on without a box, or a box with it off) before anything changes
+            box = fence_boxes(fence, len(sel), fenced, 0.0)
         goal = np.broadcast_to(np.asarray(goal, dtype=np.float64), (len(sel), 3))
         speed = np.broadcast_to(np.asarray(target_speed, dtype=np.float64), (len(sel),))
         if not (np.isfinite(goal).all() and np.isfinite(speed).all() and (speed > 0).all()):
             raise ValueError(f"reset: goal {goal.tolist()} and target_speed {speed.tolist()} must be finite, speed > 0")
         self.goal[sel] = goal
         self.target_speed[sel] = speed
+        if fenced:
+            self.fence[sel] = box
         self.prev_action[sel] = 0.0
         self.h[:, sel] = 0.0
         if self.shield is not None:
@@ -308,7 +319,8 @@ class ShieldedPilot:
         handed = self._hand_over(cmd, state, depth_m, pos, vel_w, R_wb) if self.handover is not None else None
         out = None
         if self.shield is not None:
-            out = self.shield.filter(cmd, pos, vel_w, depth=depth_m, R_wb=R_wb, ids=np.arange(n))
+            fence = self.fence if self.shield.cfg.fence else None
+            out = self.shield.filter(cmd, pos, vel_w, depth=depth_m, R_wb=R_wb, ids=np.arange(n), fence=fence)
             cmd = out.command
         if self.shield is not None or handed is not None:
             self.prev_action = np.clip(I.command_to_action(cmd, base, self.action_cfg, self.gravity), -1.0, 1.0)
@@ -350,7 +362,8 @@ def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw
                                            "goal": np.asarray([goal]), "speed": np.full(1, speed),
                                            "yaw": np.full(1, yaw)})  # fmt: skip
     volume = (env.scenes[0].bounds_lo, env.scenes[0].bounds_hi) if pilot.handover is not None else None
-    pilot.reset(env.goal_buf, speed, volume=volume)
+    fence = env_fence(env) if pilot.shield is not None and pilot.shield.cfg.fence else None
+    pilot.reset(env.goal_buf, speed, volume=volume, fence=fence)
     steps, speeds, active, policy_us, shield_us, step_us, outcome = 0, [], 0, [], [], [], ""
     handed_steps = 0
     while not outcome:

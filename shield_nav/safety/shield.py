@@ -26,6 +26,7 @@ import scipy.sparse as sp
 
 from envs.camera import CameraConfig, depth_to_points
 from shield_nav.safety.accel import _accel_from_command_1, _command_from_accel_1, accel_from_command, command_from_accel
+from shield_nav.safety.fence import env_fence, fence_boxes, fence_points
 from shield_nav.safety.memory import _append_remembered, _map_merge, _median_depth
 from shield_nav.safety.rows import (
     _min_margin,
@@ -58,6 +59,8 @@ __all__ = [
     "braking_rows",
     "ceiling_row",
     "command_from_accel",
+    "env_fence",
+    "fence_points",
     "ground_row",
     "hocbf_rows",
     "passing_rows",
@@ -425,8 +428,9 @@ class HOCBFShield:
         evaluation's shielded rows and the shield in the training loop both call this, so they filter alike.
         """
         sel = slice(None) if ids is None else ids
+        fence = env_fence(env)[sel] if self.cfg.fence else None
         return self.filter(command, env.local_pos[sel], env.vehicles.vel_w[sel], depth=env.sensor_depth_buf[sel],
-                           R_wb=env.vehicles.R_wb[sel], ids=ids, alternatives=alternatives)  # fmt: skip
+                           R_wb=env.vehicles.R_wb[sel], ids=ids, alternatives=alternatives, fence=fence)  # fmt: skip
 
     def filter(
         self,
@@ -438,6 +442,7 @@ class HOCBFShield:
         points_w: list[np.ndarray] | None = None,
         ids: np.ndarray | None = None,
         alternatives: np.ndarray | None = None,
+        fence: np.ndarray | None = None,
     ) -> ShieldOutput:
         """Filter N commands (N, 4). Obstacles come from depth images (N, 1, H, W) with body poses, or point lists.
 
@@ -446,7 +451,9 @@ class HOCBFShield:
         the vehicles for the point memory (``memory_steps`` > 0) and the previous acceleration (``lag_s`` > 0) when
         the batch is a changing subset; default 0..N-1. ``alternatives`` (N, J, 4): a multi-hypothesis policy's
         other candidates in its score order, used as :attr:`ShieldConfig.hypotheses` says (ignored with ``"top"``);
-        the output's ``choice`` says which command each vehicle flew.
+        the output's ``choice`` says which command each vehicle flew. ``fence`` (N, 2, 2) or (2, 2): each vehicle's
+        geofence ``[[x_lo, y_lo], [x_hi, y_hi]]`` in the frame of ``pos_w``, required when
+        :attr:`ShieldConfig.fence` is on and refused when it is off.
         """
         cmd = np.atleast_2d(np.asarray(command, dtype=np.float64))
         num = len(cmd)
@@ -463,6 +470,7 @@ class HOCBFShield:
             if not np.all(np.isfinite(alts)):
                 bad = np.flatnonzero(~np.isfinite(alts).all(axis=(1, 2))).tolist()
                 raise ValueError(f"non-finite alternative command for vehicle index(es) {bad}")
+        fence_box = fence_boxes(fence, num, self.cfg.fence, self.cfg.fence_inset)
         choice = np.zeros(num, dtype=np.int64)
         out_cmd = cmd.copy()
         g = self.cfg.gravity
@@ -509,6 +517,12 @@ class HOCBFShield:
                 a0 = _ZERO3 if v_prev is None else (v_i - v_prev) / self.cfg.control_dt
                 self._prev_vel[vid] = np.array(v_i, dtype=np.float64)
                 lagged = (p_i + lag * v_i + 0.5 * lag * lag * a0, v_i + lag * a0)
+            if fence_box is not None:
+                rng = self.cfg.point_filter[1]
+                walls = [fence_points(p_i, fence_box[i], rng)]
+                if lagged is not None:
+                    walls.append(fence_points(lagged[0], fence_box[i], rng))
+                pts = np.concatenate((pts, *walls))
             if alts is not None:
                 k = self._pick_hypothesis(cmd[i], alts[i], pts, p_i, v_i, lagged)
                 if k > 0:

@@ -145,6 +145,16 @@ class ShieldConfig:
     gives -a_z >= alpha1 v_z - alpha0 B. 0: off (the paper). Without it the obstacle rows may resolve a conflict by
     lifting the vehicle over the obstacles, out of the flight volume (docs/shield.md, "Ceiling row")."""
 
+    fence: bool = False
+    """If true, the sides of the flight volume (a geofence: the task's out-of-bounds boundary, given to
+    :meth:`~shield_nav.safety.shield.HOCBFShield.filter` as ``fence``) are obstacles for the shield: each call adds,
+    for every side plane within ``point_filter``'s range, the point of the plane nearest to the vehicle (and to its
+    lagged prediction) to the cloud, so the barrier lets the vehicle close on the fence only as fast as it can still
+    stop ``r_safe`` short of it, and leaves it free to fly along it. False (default): the paper's shield, which knows
+    only what the camera shows (docs/shield.md, "Geofence")."""
+    fence_inset: float = 0.0
+    """[m] The fence stands this far inside the given boundary (``fence``)."""
+
     depth_filter: str = "none"
     """Pre-filter of each depth image before the shield turns it into points (the policy always sees the image as
     it comes): ``"none"`` (default; the paper), ``"median_cross"`` (each valid pixel becomes the median of itself and
@@ -186,6 +196,9 @@ class ShieldConfig:
             f"{prefix}max_altitude",
             f"must be 0 (off) or finite and > min_altitude ({self.min_altitude}), got {self.max_altitude}",
         )
+        require(isinstance(self.fence, bool), f"{prefix}fence", f"must be true or false, got {self.fence!r}")
+        require(0.0 <= self.fence_inset <= 10.0 and math.isfinite(self.fence_inset), f"{prefix}fence_inset",
+                f"must be in [0, 10] m, got {self.fence_inset}")  # fmt: skip
         require(self.barrier in ("distance", "braking", "backup"), f"{prefix}barrier",
                 f"must be 'distance', 'braking' or 'backup', got {self.barrier!r}")  # fmt: skip
         require(self.brake_accel > 0 and math.isfinite(self.brake_accel), f"{prefix}brake_accel",

@@ -234,6 +234,28 @@ def test_pilot_refuses_bad_input():
         ShieldedPilot(pilot.policy, handover=EscapeConfig(kind="handover", handover_planner="expert"))
 
 
+def test_pilot_keeps_inside_its_geofence():
+    """With ``shield.fence`` the pilot's shield brakes an approach to the fence by the hand-computed braking row
+    (vehicle 0: 2 m from x_hi = 10 at 5 m/s, no lag: a_x <= -b, b = -4 (sqrt(34) - 5) + 50 / sqrt(34)) and leaves
+    vehicle 1, in the middle of the box, to the policy; the box is checked at reset."""
+    policy = ShieldedPilot.load(FULL, num_vehicles=2).policy
+    pilot = ShieldedPilot(policy, ShieldConfig(lag_s=0.0, fence=True), num_vehicles=2)
+    assert pilot.warm_up() > 0  # the warm-up's scratch pilot gets a fence of its own
+    with pytest.raises(ValueError, match="shield.fence is on"):
+        pilot.reset([[60.0, 0.0, 1.5]], 5.0)
+    with pytest.raises(ValueError, match="shield.fence is off"):
+        ShieldedPilot(policy, num_vehicles=2).reset([[60.0, 0.0, 1.5]], 5.0, fence=[[0.0, 0.0], [10.0, 10.0]])
+    pilot.reset([[60.0, 5.0, 1.5]], 5.0, fence=[[0.0, 0.0], [10.0, 10.0]])
+    depth = np.zeros((2, 1, 60, 100))  # no return anywhere: the fence is the only obstacle
+    pos, vel = np.array([[8.0, 5.0, 1.5], [5.0, 5.0, 1.5]]), np.array([[5.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    out = pilot.step(depth, pos, vel, np.repeat(_yaw(0.0), 2, 0))
+    b = -4.0 * (math.sqrt(34.0) - 5.0) + 50.0 / math.sqrt(34.0)
+    raw, safe = out.shield.accel_raw, out.shield.accel_safe
+    assert raw[0, 0] > -b and out.shield.active.tolist() == [True, False]
+    np.testing.assert_allclose(safe[0], [-b, raw[0, 1], raw[0, 2]], atol=1e-6)  # the projection onto a_x <= -b
+    np.testing.assert_array_equal(safe[1], raw[1])
+
+
 def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
     _, _, rec = eval_full_trial
     out = subprocess.run([sys.executable, "-m", "shield_nav.deploy", FULL, "--family", "ablation", "--scene", "7",

@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+from omegaconf.nodes import BooleanNode
 
 T = TypeVar("T")
 
@@ -35,7 +36,33 @@ def _format_omegaconf_error(err: OmegaConfBaseException, source: str) -> str:
     return f"config{where}: {msg}"
 
 
+def _check_bools(base: DictConfig, other: Any, source: str, prefix: str = "") -> None:
+    """Refuse a non-boolean value for a boolean key of ``base`` in the layer ``other``.
+
+    OmegaConf turns any integer into a boolean (``fence=3`` would read as true), so a typed layer checks its
+    booleans itself: YAML's true / false (and yes / no, on / off) pass; a number or a string is refused by name.
+    """
+    if not isinstance(other, DictConfig) or not isinstance(base, DictConfig):
+        return
+    for key in other:
+        if key not in base:
+            continue  # an unknown key: the merge names it
+        node, raw = base._get_node(key), other._get_node(key)
+        if isinstance(node, DictConfig):
+            _check_bools(node, raw, source, f"{prefix}{key}.")
+        elif isinstance(node, BooleanNode):
+            value = raw._value() if raw is not None else None
+            if value is not None and not isinstance(value, bool) and not _is_interpolation(value):
+                where = f" (from {source})" if source else ""
+                raise ConfigError(f"config key '{prefix}{key}'{where}: must be true or false, got {value!r}")
+
+
+def _is_interpolation(value: Any) -> bool:
+    return isinstance(value, str) and value.startswith("${")
+
+
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
+    _check_bools(base, other, source)
     try:
         return OmegaConf.merge(base, other)
     except OmegaConfBaseException as err:

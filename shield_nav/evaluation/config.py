@@ -147,8 +147,9 @@ class EvalConfig:
     checkpoints: dict[str, str] = field(default_factory=lambda: dict(BUILTIN_CHECKPOINTS))
     """Policy name -> exported policy (``policy.onnx`` / ``policy.pt``, or the folder holding it)."""
     network: str = "fixed_order"
-    """How a policy's network is run. ``fixed_order`` (the default since 2026-12-02): the weights of the TorchScript
-    export ``policy.pt`` run by :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations;
+    """How a policy's network is run. ``fixed_order`` (the default since 2026-12-02): the policy's weights (read from a
+    packaged folder's ``model.pt`` or a run's checkpoint without TorchScript, else from the TorchScript export
+    ``policy.pt``) run by :mod:`shield_nav.evaluation.fixed_order` in one fixed order of float64 operations;
     ``eval.py`` then also pins OpenBLAS's and numpy's kernels
     (:func:`shield_nav.provenance.pinned_arithmetic_environment`), so its flights do not depend on the x86-64
     processor (docs/evaluation.md, "A flight that does not depend on the processor"). An evaluation called in a

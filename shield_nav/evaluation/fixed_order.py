@@ -4,8 +4,9 @@ onnxruntime and torch pick their convolution and matrix kernels by the processor
 sums its products in its own order: the same policy file gives actions that differ in the last bits from one
 processor kind to another, and closed-loop flight grows such differences into other trajectories (13-16 of 100
 trials end otherwise when only the network's kernels change; docs/evaluation.md, "Reproducing a table"). This module
-runs the same weights (read from the TorchScript export ``policy.pt``, or from a training checkpoint ``model*.pt``
-through :func:`shield_nav.training.actor.actor_from_checkpoint`, which needs no TorchScript) with plain loops compiled
+runs the same weights (read from a training checkpoint ``model*.pt`` through
+:func:`shield_nav.training.actor.actor_from_checkpoint`, which needs no TorchScript and is what a packaged folder is
+read through, or from the TorchScript export ``policy.pt``) with plain loops compiled
 by numba without ``fastmath``: every sum runs in one written order in float64, no operation is fused or reassociated,
 and the exponential is this module's own polynomial (libm's may differ between its FMA and non-FMA variants). So the
 actions are the same bits on every processor numba compiles for; the test suite checks that a baseline x86-64 build

@@ -263,37 +263,54 @@ EXPORT_SOURCE_FILE = "source.json"
 """Written by training beside its exports (``exported/source.json``): the checkpoint they were made from."""
 
 
-def _find_torchscript(file: str, name: str) -> str:
-    """The TorchScript export that ``network: fixed_order`` reads.
+def _fixed_order_file(file: str, name: str) -> str:
+    """The file whose weights ``network: fixed_order`` reads, preferring one that needs no TorchScript.
 
-    ``file`` itself, or the ``policy.pt`` beside an ONNX file (or in an ``exported/`` folder beside it); without one,
-    the training checkpoint ``model.pt`` of a packaged folder (``checkpoints/<name>/``) or the run's checkpoint that
-    ``exported/source.json`` names, whose actor :func:`load_policy` rebuilds without TorchScript.
+    ``file`` itself if it is a ``.pt``; else, beside the ONNX file, the packaged training checkpoint ``model.pt``
+    (``checkpoints/<name>/``), then the run's checkpoint that ``exported/source.json`` names when it is there with
+    the recorded sha256 (a run's ``exported/``), both rebuilt by :func:`load_policy` without TorchScript (the same
+    weights, so the same bits, as the TorchScript export); else the TorchScript export ``policy.pt`` (beside the
+    ONNX file, or in an ``exported/`` folder beside it); else the checkpoint ``source.json`` names, which must then
+    exist and match.
     """
     if file.endswith(".pt"):
         return file
     d = os.path.dirname(os.path.abspath(file))
-    for cand in (os.path.join(d, "policy.pt"), os.path.join(d, "exported", "policy.pt"), os.path.join(d, "model.pt")):
+    sources = [s for s in (os.path.join(d, EXPORT_SOURCE_FILE), os.path.join(d, "exported", EXPORT_SOURCE_FILE))
+               if os.path.isfile(s)]  # fmt: skip
+    if os.path.isfile(os.path.join(d, "model.pt")):
+        return os.path.join(d, "model.pt")
+    for src in sources:
+        ckpt = _export_source_checkpoint(src, name, strict=False)
+        if ckpt is not None:
+            return ckpt
+    for cand in (os.path.join(d, "policy.pt"), os.path.join(d, "exported", "policy.pt")):
         if os.path.isfile(cand):
             return cand
-    for src in (os.path.join(d, EXPORT_SOURCE_FILE), os.path.join(d, "exported", EXPORT_SOURCE_FILE)):
-        if os.path.isfile(src):
-            return _export_source_checkpoint(src, name)
+    if sources:
+        return _export_source_checkpoint(sources[0], name)  # type: ignore[return-value]  # raises, naming why
     raise EvalError(f"checkpoint {name!r}: network 'fixed_order' reads the TorchScript export policy.pt (or a "
                     f"packaged model.pt, or the run checkpoint an exported/{EXPORT_SOURCE_FILE} names), and there is "
                     f"none beside {file!r}; point --checkpoint at a policy.pt or a training checkpoint model_<it>.pt, "
                     "or fly the ONNX file with --set network=export")  # fmt: skip
 
 
-def _export_source_checkpoint(src: str, name: str) -> str:
-    """The run's checkpoint that ``src`` (``<run>/exported/source.json``) names, checked against its sha256."""
+def _export_source_checkpoint(src: str, name: str, strict: bool = True) -> str | None:
+    """The run's checkpoint that ``src`` (``<run>/exported/source.json``) names, checked against its sha256.
+
+    With ``strict`` a missing or changed checkpoint is an :class:`EvalError`; without, None.
+    """
     with open(src) as f:
         rec = json.load(f)
     ckpt = os.path.join(os.path.dirname(os.path.dirname(src)), str(rec.get("checkpoint", "")))
     if not os.path.isfile(ckpt):
+        if not strict:
+            return None
         raise EvalError(f"checkpoint {name!r}: {src} says the export was made from {rec.get('checkpoint')!r}, and "
                         f"{ckpt!r} does not exist; point --checkpoint at a policy.pt or a model_<it>.pt")  # fmt: skip
     if _sha256(ckpt) != rec.get("sha256"):
+        if not strict:
+            return None
         raise EvalError(f"checkpoint {name!r}: {ckpt!r} is not the checkpoint the export was made from (sha256 "
                         f"differs from {src}); point --checkpoint at the checkpoint to fly")  # fmt: skip
     return ckpt
@@ -316,7 +333,7 @@ def load_policy(path: str | os.PathLike, name: str = "policy", network: str = "e
     """
     file = _find_policy_file(os.fspath(path), name)
     if network == "fixed_order":
-        file = _find_torchscript(file, name)
+        file = _fixed_order_file(file, name)
     elif network != "export":
         raise EvalError(f"network: {network!r}; known: 'export', 'fixed_order'")
     cfg_path = _find_train_config(file)

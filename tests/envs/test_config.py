@@ -34,7 +34,9 @@ def test_booleans_from_yaml_files_overrides_and_mappings_pass(tmp_path):
     path.write_text("flag: false\ninner:\n  enabled: true\n")
     assert load_config(_Outer, files=[path]) == _Outer(False, _Inner(True))
     path.write_text("inner:\n  enabled: 1\n")
-    with pytest.raises(ConfigError, match=rf"config key 'inner\.enabled' \(from {path}\): must be true or false, got 1"):
+    with pytest.raises(
+        ConfigError, match=rf"config key 'inner\.enabled' \(from {path}\): must be true or false, got 1"
+    ):
         load_config(_Outer, files=[path])
     with pytest.raises(ConfigError, match=r"config key 'flag' \(from overrides\): must be true or false, got 2"):
         load_config(_Outer, overrides={"flag": 2})

@@ -157,6 +157,19 @@ def test_a_run_export_without_its_torchscript_file_flies_the_checkpoint_its_sour
     (run / "exported" / "source.json").write_text(json.dumps({**record, "checkpoint": "model_300.pt"}))
     with pytest.raises(E.EvalError, match="'model_300.pt'.*does not exist"):
         E.load_policy(str(run), "run", network="fixed_order")
+    # With the TorchScript export there, a checkpoint that no longer matches gives way to it (the export's weights).
+    shutil.copy(os.path.join(src, "policy.pt"), run / "exported" / "policy.pt")
+    assert E.load_policy(str(run), "run", network="fixed_order").info.path == str(run / "exported" / "policy.pt")
+    (run / "exported" / "source.json").write_text(json.dumps(record))  # the checkpoint matches again: it comes first
+    assert E.load_policy(str(run), "run", network="fixed_order").info.path == str(run / "model_299.pt")
+
+
+def test_fixed_order_reads_a_packaged_folder_through_its_checkpoint_not_torchscript():
+    """``checkpoints/<name>`` holds ``model.pt`` beside ``policy.pt``: the default runtime reads the checkpoint (no
+    deprecated ``torch.jit.load`` on the default path); ``--set network=export`` flies the ONNX file."""
+    folder = os.path.join(ROOT, "checkpoints", "full")
+    assert E.load_policy(folder, "full", network="fixed_order").info.path == os.path.join(folder, "model.pt")
+    assert E.load_policy(folder, "full", network="export").info.path == os.path.join(folder, "policy.onnx")
 
 
 def test_the_eager_export_keeps_every_slot_of_a_shared_activation():

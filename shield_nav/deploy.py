@@ -350,13 +350,16 @@ class ShieldedPilot:
         return handed
 
 
-def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw: float, seed: int = 0) -> dict:
+def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw: float, seed: int = 0,
+        real_time: bool = False) -> dict:  # fmt: skip
     """Fly one flight of a one-vehicle ``env`` (a ``NavigationEnv`` without autoreset) with ``pilot`` alone.
 
-    The env only renders the sensor's image and flies the pilot's commands. Returns the outcome, the step count,
-    the mean speed, the shield's active share, the steps flown by the handover planner and the per-step costs [us]:
-    the policy network, the shield, and the whole :meth:`ShieldedPilot.step` (state, network, mapping, handover,
-    shield).
+    The env only renders the sensor's image and flies the pilot's commands. ``real_time``: each step starts one
+    control period (``command_dt``) after the last started, as on a vehicle, rather than as soon as the simulator is
+    done, so a planning thread has the period's idle time; a step late for its start starts at once, and the ticks
+    go on from it. Returns the outcome, the step count, the mean speed, the shield's active share, the steps flown
+    by the handover planner and the per-step costs [us]: the policy network, the shield, and the whole
+    :meth:`ShieldedPilot.step` (state, network, mapping, handover, shield).
     """
     obs, _ = env.reset(seed=seed, options={"scene_ids": np.zeros(1, np.int64), "start": np.asarray([start]),
                                            "goal": np.asarray([goal]), "speed": np.full(1, speed),
@@ -366,7 +369,12 @@ def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw
     pilot.reset(env.goal_buf, speed, volume=volume, fence=fence)
     steps, speeds, active, policy_us, shield_us, step_us, outcome = 0, [], 0, [], [], [], ""
     handed_steps = 0
+    period, tick = float(env.cfg.vehicle.command_dt), time.perf_counter()
     while not outcome:
+        if real_time:
+            tick += period
+            time.sleep(max(tick - time.perf_counter(), 0.0))
+            tick = max(tick, time.perf_counter())
         t0 = time.perf_counter()
         out = pilot.step(env.sensor_depth_buf, env.local_pos, env.vehicles.vel_w, env.vehicles.R_wb)
         step_us.append((time.perf_counter() - t0) * 1e6)
@@ -389,11 +397,13 @@ def fly(pilot: ShieldedPilot, env: Any, start: Any, goal: Any, speed: float, yaw
             "step_us": np.asarray(step_us)}  # fmt: skip
 
 
-def fly_trial(pilot: ShieldedPilot, family: str, scene: int, speed: float, trial: int = 0) -> dict:
+def fly_trial(pilot: ShieldedPilot, family: str, scene: int, speed: float, trial: int = 0,
+              real_time: bool = False) -> dict:  # fmt: skip
     """Fly ``eval.py``'s pinned trial ``trial`` (seed 0) of ``family`` scene ``scene`` at ``speed`` through ``pilot``.
 
     The tables' conditions: clean sensor, nominal vehicle, time limit 1.5 x the straight-line time + 5 s, the
-    policy's training ``action``, ``camera`` and ``vehicle`` sections. Returns :func:`fly`'s record.
+    policy's training ``action``, ``camera`` and ``vehicle`` sections; ``real_time`` as :func:`fly`. Returns
+    :func:`fly`'s record.
     """
     from envs.navigation import NavigationEnv
     from envs.scenes import make_scene
@@ -413,7 +423,7 @@ def fly_trial(pilot: ShieldedPilot, family: str, scene: int, speed: float, trial
         seed = trial_seed(0, family, scene, speed, trial)
         tr = sample_trial(make_scene(family, scene), env.field_stack, 0, seed,
                           nav.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
-        return fly(pilot, env, tr["start"], tr["goal"], speed, tr["yaw"], seed % (2**31))
+        return fly(pilot, env, tr["start"], tr["goal"], speed, tr["yaw"], seed % (2**31), real_time)
     finally:
         env.close()
 
@@ -439,6 +449,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--replan-delay", type=int, default=0, metavar="L",
                    help="with --handover: plan on a thread of its own, flown L control steps later (default 0: "
                         "inline)")  # fmt: skip
+    p.add_argument("--real-time", action="store_true",
+                   help="start each control step one period after the last, as on a vehicle (default: as soon as the "
+                        "simulator is done)")  # fmt: skip
     p.add_argument("--shield", action="append", default=[], metavar="KEY=VALUE",
                    help="a shield parameter other than its default, e.g. depth_filter=median_cross (repeatable; "
                         "docs/shield.md, 'Parameters')")  # fmt: skip
@@ -451,7 +464,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.replan_delay and not args.handover:
         p.error("--replan-delay delays the handover planner's plans; it needs --handover")
     pilot = ShieldedPilot.load(args.checkpoint, shield, handover=args.handover, replan_delay=args.replan_delay)
-    r = fly_trial(pilot, args.family, args.scene, args.speed, args.trial)
+    r = fly_trial(pilot, args.family, args.scene, args.speed, args.trial, args.real_time)
     pilot.close()
     shielded = "alone" if args.no_shield else "behind the shield"
     if args.handover:

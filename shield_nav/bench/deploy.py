@@ -10,7 +10,10 @@ Also reported: ``warm_up_s``, what :meth:`~shield_nav.deploy.ShieldedPilot.warm_
 numba's on-disk cache empty it compiles the kernels, seconds; with it filled, a fraction of a second), and
 ``first_step_us``, the first control step after it, the step a vehicle's first period holds.
 ``--handover`` adds the stall handover of ``eval.py``'s ``full_handover`` row (its camera map is kept from the first
-step of every flight; ``handed_steps`` says how many steps the planner flew).
+step of every flight; ``handed_steps`` says how many steps the planner flew). ``--real-time`` starts each step one
+control period after the last, as a vehicle's loop does, rather than as soon as the simulator is done: with
+``--replan-delay`` the planning thread then has the periods' idle time, as on a vehicle (back to back a handed step
+waits for a plan that a paced loop has had time to finish).
 """
 
 from __future__ import annotations
@@ -35,6 +38,9 @@ def main(argv: list[str]) -> dict:
     p.add_argument("--handover", action="store_true", help="with the stall handover (the full_handover row's rules)")
     p.add_argument("--replan-delay", type=int, default=0, metavar="L",
                    help="with --handover: plans on a thread, flown L steps later (default 0)")  # fmt: skip
+    p.add_argument("--real-time", action="store_true",
+                   help="start each step one control period after the last, as on a vehicle (default: as soon as the "
+                        "simulator is done)")  # fmt: skip
     args = p.parse_args(argv)
     flights = []
     for item in args.flights.split(","):
@@ -53,12 +59,13 @@ def main(argv: list[str]) -> dict:
     first = fly_trial(pilot, *flights[0])  # a flight first: onnxruntime's and the allocator's steady state
     result: dict = {"benchmark": "deploy", "checkpoint": args.checkpoint, "runtime": pilot.policy.info.kind,
                     "handover": bool(args.handover), "replan_delay": args.replan_delay,
+                    "real_time": bool(args.real_time),
                     "warm_up_s": round(warm_up_s, 3),
                     "first_step_us": round(float(first["step_us"][0]), 1), "flights": []}  # fmt: skip
     period_us = 1e6 * pilot.shield.cfg.control_dt if pilot.shield is not None else 1e4
     all_step, all_policy, all_shield = [], [], []
     for family, scene, speed in flights:
-        r = fly_trial(pilot, family, scene, speed)
+        r = fly_trial(pilot, family, scene, speed, real_time=args.real_time)
         rec = {"flight": f"{family}:{scene}:{speed:g}", "outcome": r["outcome"], "steps": r["steps"],
                "shield_active": round(r["shield_active"], 4), "step_us": _stats(r["step_us"]),
                "policy_us": _stats(r["policy_us"]), "shield_us": _stats(r["shield_us"]),

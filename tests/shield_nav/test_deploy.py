@@ -4,6 +4,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -128,8 +129,9 @@ def test_pilot_with_handover_flies_evals_handed_flight_step_for_step():
 def test_pilot_planning_on_its_own_thread_flies_evals_delayed_plans_step_for_step():
     """``replan_delay=2``: the camera-map plans run on the pilot's planning thread and are flown two steps after
     their inputs; eval.py flies the same delay inline (``baselines.reactive.camera_map.plan_delay_steps=2``). The
-    handed flight through the pilot repeats eval.py's (outcome, steps, handed steps, shield activity, end point),
-    and the delay is real: the same flight planned without it ends elsewhere."""
+    handed flight through the pilot, paced at the control period as on a vehicle (``real_time``), repeats eval.py's
+    (outcome, steps, handed steps, shield activity, end point), and the delay is real: the same flight planned
+    without it ends elsewhere."""
     over = {"kind": "handover", "window_s": 0.2, "min_progress": 1000.0}
     rows = [f"rows.mine.{k}={v}" for k, v in (("policy", "full"), ("shield", "true"), ("escape", "true"))]
     rows += [f"rows.mine.escape_overrides.{k}={v}" for k, v in over.items()]
@@ -149,7 +151,9 @@ def test_pilot_planning_on_its_own_thread_flies_evals_delayed_plans_step_for_ste
                          env.cfg.vehicle.airframe.collision_radius + 0.4)  # fmt: skip
     with ShieldedPilot.load(FULL, handover=EscapeConfig(**over), replan_delay=2) as pilot:
         assert pilot._pool is not None
-        r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31))
+        t0 = time.perf_counter()  # paced at the control period, as on a vehicle: the thread plans in the idle time
+        r = fly(pilot, env, trial["start"], trial["goal"], spec.speed, trial["yaw"], seed % (2**31), real_time=True)
+        assert time.perf_counter() - t0 >= (r["steps"] - 1) * env.cfg.vehicle.command_dt
     with pytest.raises(RuntimeError, match="shutdown"):  # closed: its planning thread takes no more plans
         pilot._pool.submit(int)
     assert (r["outcome"], r["steps"], r["handed_steps"]) == (rec["outcome"], rec["steps"], rec["steps"] - 20)

@@ -96,6 +96,11 @@ class _PilotView:
         self.local_pos = self.goal_buf = self.target_speed_buf = self.sensor_depth_buf = None
 
 
+ROTATION_TOL = 1e-3
+"""How far ``R_wb^T R_wb`` may be from the identity (largest entry) before :meth:`ShieldedPilot.step` refuses the
+attitude: a float32 quaternion's matrix is within 1e-6, a scaled or sheared one is not."""
+
+
 class ShieldedPilot:
     """An exported depth CNN+GRU policy behind the HOCBF shield, for N vehicles, one control step per call.
 
@@ -284,10 +289,11 @@ class ShieldedPilot:
         """One control step for all N vehicles.
 
         Args:
-            depth_m: Metric depth images (N, 1, H, W) [m] as the camera reports them (0 or non-finite: no return).
+            depth_m: Metric depth images (N, 1, H, W) [m] as the camera reports them (0, negative or non-finite: no
+                return).
             pos: Positions (N, 3) [m] in the goal's frame, z the height above the ground.
             vel_w: Velocities (N, 3) [m/s] in that frame.
-            R_wb: Attitudes (N, 3, 3), body -> that frame.
+            R_wb: Attitudes (N, 3, 3), body -> that frame: rotations (orthonormal within ``ROTATION_TOL``, det +1).
 
         Returns:
             The command to fly, the policy's action and the shield's output. The command's normalised equivalent is
@@ -304,6 +310,12 @@ class ShieldedPilot:
         for name in ("pos", "vel_w", "R_wb"):
             if not np.isfinite(shapes[name][0]).all():
                 raise ValueError(f"{name} is not finite: {np.asarray(shapes[name][0]).tolist()}")
+        r = np.asarray(R_wb, dtype=np.float64)
+        off = np.abs(np.einsum("nki,nkj->nij", r, r) - np.eye(3)).max(axis=(1, 2))  # R^T R = I for a rotation
+        if (off > ROTATION_TOL).any() or (np.linalg.det(r) <= 0.0).any():
+            bad = int(np.flatnonzero((off > ROTATION_TOL) | (np.linalg.det(r) <= 0.0))[0])
+            raise ValueError(f"R_wb of vehicle {bad} is not a rotation (|R^T R - I| = {off[bad]:.3g}, det = "
+                             f"{np.linalg.det(r[bad]):.3g}): {r[bad].tolist()}")  # fmt: skip
         vel_b = np.einsum("nji,nj->ni", R_wb, vel_w)  # R_wb^T v_w, as the vehicle model computes it
         state = I.policy_state(pos, R_wb, vel_b, self.prev_action, self.goal, self.target_speed).astype(np.float32)
         depth = normalize_depth(depth_m, self.camera)

@@ -214,6 +214,16 @@ def test_pilot_refuses_bad_input():
     bad[1, 2] = np.nan
     with pytest.raises(ValueError, match="pos is not finite"):
         pilot.step(depth, bad, vel, R)
+    scaled, mirrored = R.copy(), R.copy()  # not rotations: a scaled matrix, and a reflection (det -1)
+    scaled[1] *= 1.01
+    mirrored[0, :, 1] *= -1.0
+    with pytest.raises(ValueError, match=r"vehicle 1 is not a rotation \(\|R\^T R - I\| = 0.0201, det = 1.03\)"):
+        pilot.step(depth, pos, vel, scaled)
+    with pytest.raises(ValueError, match=r"R_wb of vehicle 0 is not a rotation \(\|R\^T R - I\| = 0, det = -1\)"):
+        pilot.step(depth, pos, vel, mirrored)
+    rounded = (R.astype(np.float32) @ _yaw(0.3).astype(np.float32)).astype(np.float64)  # float32 rounding: taken
+    pilot.step(depth, pos, vel, rounded)
+    pilot.reset([[60.0, 0.0, 1.5]], 5.0)
     out = pilot.step(depth, pos, vel, R)  # a wall 5 m ahead, hovering: a finite command per vehicle
     assert out.command.shape == (2, 4) and np.isfinite(out.command).all() and out.shield is not None
     with pytest.raises(ValueError, match="hypotheses"):

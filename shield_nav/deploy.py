@@ -491,6 +491,11 @@ def main(argv: list[str] | None = None) -> int:
         )
     else:
         print()
+    period_us = 1e6 * r["duration_s"] / r["steps"]
+    over = int((r["step_us"] > period_us).sum())
+    print(f"slowest step {r['step_us'].max() / 1e3:.2f} ms; {over} of {r['steps']} steps over the "
+          f"{period_us / 1e3:g} ms control period" + (" (paced as on a vehicle)" if args.real_time else
+                                                        " (back to back; --real-time paces them)"))  # fmt: skip
     return 0
 
 

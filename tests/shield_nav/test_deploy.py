@@ -277,6 +277,7 @@ def test_deploy_cli_flies_the_evaluations_trial(eval_full_trial):
     assert out.returncode == 0, out.stderr
     assert f"{rec['outcome']} after {rec['steps'] / 100:.2f} s" in out.stdout
     assert "per control step, mean / p99: the whole step" in out.stdout and "and the shield" in out.stdout
+    assert f"of {rec['steps']} steps over the 10 ms control period (back to back; --real-time paces them)" in out.stdout
 
 
 def test_deploy_cli_hands_over_with_full_handovers_rules(eval_full_trial, capsys):

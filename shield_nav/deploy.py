@@ -312,10 +312,12 @@ class ShieldedPilot:
                 raise ValueError(f"{name} is not finite: {np.asarray(shapes[name][0]).tolist()}")
         r = np.asarray(R_wb, dtype=np.float64)
         off = np.abs(np.einsum("nki,nkj->nij", r, r) - np.eye(3)).max(axis=(1, 2))  # R^T R = I for a rotation
-        if (off > ROTATION_TOL).any() or (np.linalg.det(r) <= 0.0).any():
-            bad = int(np.flatnonzero((off > ROTATION_TOL) | (np.linalg.det(r) <= 0.0))[0])
+        det = np.linalg.det(r)
+        wrong = (off > ROTATION_TOL) | (det <= 0.0)
+        if wrong.any():
+            bad = int(np.flatnonzero(wrong)[0])
             raise ValueError(f"R_wb of vehicle {bad} is not a rotation (|R^T R - I| = {off[bad]:.3g}, det = "
-                             f"{np.linalg.det(r[bad]):.3g}): {r[bad].tolist()}")  # fmt: skip
+                             f"{det[bad]:.3g}): {r[bad].tolist()}")  # fmt: skip
         vel_b = np.einsum("nji,nj->ni", R_wb, vel_w)  # R_wb^T v_w, as the vehicle model computes it
         state = I.policy_state(pos, R_wb, vel_b, self.prev_action, self.goal, self.target_speed).astype(np.float32)
         depth = normalize_depth(depth_m, self.camera)
@@ -491,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     else:
         print()
-    period_us = 1e6 * r["duration_s"] / r["steps"]
+    period_us = 1e6 * pilot.command_dt
     over = int((r["step_us"] > period_us).sum())
     print(f"slowest step {r['step_us'].max() / 1e3:.2f} ms; {over} of {r['steps']} steps over the "
           f"{period_us / 1e3:g} ms control period" + (" (paced as on a vehicle)" if args.real_time else

@@ -145,6 +145,7 @@ def test_workers_leave_when_the_parent_is_killed(tmp_path):
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
+        proc.stdout.close()
 
     def alive(pid):
         try:

@@ -176,7 +176,7 @@ def test_scheduled_distillation_sets_the_rate_and_a_resume_continues_it():
     with pytest.raises(ValueError, match="lr_final"):
         ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=1e-4, lr_schedule="cosine",
                               lr_final=1e-3)  # fmt: skip
-    ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=0.0)  # constant: lr_final unused
+    ScheduledDistillation(alg.student, alg.teacher, alg.storage, learning_rate=0.0, gradient_length=4)  # constant
 
 
 def _filled(alg, n, steps, gen, done_at=3):

@@ -14,6 +14,12 @@ from shield_nav.evaluation.config import load_eval_config
 from shield_nav.evaluation.plots import main, trajectory_figures
 
 
+def image_size(path):
+    """(width, height) of a PNG, the file closed again."""
+    with Image.open(path) as im:
+        return im.size
+
+
 def _folder(tmp_path):
     """An output folder of the default eval config with two units of ablation scene 0 (3 and 5 m/s), by hand."""
     cfg = load_eval_config()
@@ -39,7 +45,7 @@ def test_one_figure_per_scene_with_a_panel_per_unit_and_the_cli(tmp_path, capsys
     assert one == [str(tmp_path / "a" / "trajectories_ablation-00_v3.png")]
     both = trajectory_figures(str(out), [0], dest=str(tmp_path / "b"))
     assert both == [str(tmp_path / "b" / "trajectories_ablation-00_v3_v5.png")]
-    h1, h2 = Image.open(one[0]).size[1], Image.open(both[0]).size[1]
+    h1, h2 = image_size(one[0])[1], image_size(both[0])[1]
     assert 1.8 * h1 < h2 < 2.2 * h1  # two panels stacked, each as tall as the one-panel figure's
     main([str(out), "--scenes", "0", "--rows", "full"])
     assert capsys.readouterr().out.strip() == str(out / "figures" / "trajectories_ablation-00_v3_v5.png")
@@ -69,7 +75,7 @@ def test_two_folders_stack_their_panels_and_name_a_shared_row_by_folder(tmp_path
     a, b = _folder(tmp_path / "a"), _folder(tmp_path / "b")
     one = trajectory_figures(str(a), [0], speeds=[3.0], dest=str(tmp_path / "one"))
     two = trajectory_figures([str(a), str(b)], [0], speeds=[3.0], dest=str(tmp_path / "two"))
-    h1, h2 = Image.open(one[0]).size[1], Image.open(two[0]).size[1]
+    h1, h2 = image_size(one[0])[1], image_size(two[0])[1]
     assert 1.8 * h1 < h2 < 2.2 * h1  # a panel from each folder
     import shield_nav.evaluation.plots as plots
 
@@ -94,7 +100,7 @@ def test_xlim_draws_part_of_the_scene_and_bad_limits_are_named(tmp_path):
     out = _folder(tmp_path / "run")
     whole = trajectory_figures(str(out), [0], speeds=[3.0], dest=str(tmp_path / "w"))
     part = trajectory_figures(str(out), [0], speeds=[3.0], dest=str(tmp_path / "p"), xlim=(0.0, 20.0))
-    (w1, h1), (w2, h2) = Image.open(whole[0]).size, Image.open(part[0]).size
+    (w1, h1), (w2, h2) = image_size(whole[0]), image_size(part[0])
     assert w1 == w2 and h2 > 1.5 * h1  # a third of the scene's 64 m drawn as wide: taller
     for bad in ((5.0, 5.0), (0.0, float("nan")), (1.0,)):
         with pytest.raises(ValueError, match="xlim"):

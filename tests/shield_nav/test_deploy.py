@@ -102,13 +102,13 @@ def test_pilot_flies_evals_full_flight_step_for_step(eval_full_trial):
 def test_pilot_with_handover_flies_evals_handed_flight_step_for_step():
     """With a handover the pilot flies eval.py's handed flight: a row handing every flight to the camera-map planner
     at 0.2 s (1 km of progress asked), the same outcome, step count, handed steps, shield activity and end point; the
-    default rules are the `full_handover` row's."""
+    default rules are the `full_handover` row's. The flight is cut at 5 s (500 steps)."""
     over = {"kind": "handover", "window_s": 0.2, "min_progress": 1000.0}
     rows = [f"rows.mine.{k}={v}" for k, v in (("policy", "full"), ("shield", "true"), ("escape", "true"))]
     rows += [f"rows.mine.escape_overrides.{k}={v}" for k, v in over.items()]
     cfg = E.load_eval_config(None, ["name=deploy", "configurations=[mine]", *rows, "scenes.family=ablation",
                                     "scenes.indices=[7]", "speeds=[9.0]", "trials_per_scene=1", "plots=false",
-                                    "network=export", "env_overrides=[episode.timeout_factor=1.5]"])  # fmt: skip
+                                    "network=export", "env_overrides=[episode.timeout_factor=0.0]"])  # fmt: skip
     (spec,) = E.plan_units(E.prepare(cfg))
     rec = E.run_unit(spec)["trials"][0]
     assert rec["escape"] == {"escapes": 1, "escape_steps": rec["steps"] - 20, "by_circling": 0}
@@ -131,13 +131,13 @@ def test_pilot_planning_on_its_own_thread_flies_evals_delayed_plans_step_for_ste
     their inputs; eval.py flies the same delay inline (``baselines.reactive.camera_map.plan_delay_steps=2``). The
     handed flight through the pilot, paced at the control period as on a vehicle (``real_time``), repeats eval.py's
     (outcome, steps, handed steps, shield activity, end point), and the delay is real: the same flight planned
-    without it ends elsewhere."""
+    without it ends elsewhere. The flights are cut at 5 s (500 steps), 480 of them handed over."""
     over = {"kind": "handover", "window_s": 0.2, "min_progress": 1000.0}
     rows = [f"rows.mine.{k}={v}" for k, v in (("policy", "full"), ("shield", "true"), ("escape", "true"))]
     rows += [f"rows.mine.escape_overrides.{k}={v}" for k, v in over.items()]
     base = ["name=deploy", "configurations=[mine]", *rows, "scenes.family=ablation", "scenes.indices=[7]",
             "speeds=[9.0]", "trials_per_scene=1", "plots=false", "network=export",
-            "env_overrides=[episode.timeout_factor=1.5]"]  # fmt: skip
+            "env_overrides=[episode.timeout_factor=0.0]"]  # fmt: skip
     recs = {}
     for delay in (0, 2):
         cfg = E.load_eval_config(None, [*base, f"baselines.reactive.camera_map.plan_delay_steps={delay}"])

@@ -19,7 +19,34 @@ if TYPE_CHECKING:  # the model builds its exports from this module
     from shield_nav.policies.models import DepthGRUModel
 
 
-class ExportedDepthGRU(nn.Module):
+class ExportedRecurrentPolicy(nn.Module):
+    """What every exported actor shares: an explicit hidden state ``(L, B, hidden_size)`` and one env's dummy inputs.
+
+    A subclass sets ``obs_dim``, ``depth_shape``, ``num_layers``, ``hidden_size``, ``input_names`` and
+    ``output_names`` and defines ``forward(obs, depth, h_in) -> (actions, h_out)``.
+    """
+
+    @torch.jit.export
+    def initial_state(self, batch_size: int) -> torch.Tensor:
+        """Zero hidden state ``(L, batch_size, hidden_size)``."""
+        return torch.zeros(self.num_layers, batch_size, self.hidden_size)
+
+    @torch.jit.export
+    def reset(self) -> None:
+        """No-op (the state is an explicit input); kept because rsl-rl's exported policies have it."""
+        pass
+
+    @torch.jit.unused
+    def get_dummy_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Inputs for ONNX tracing: one env."""
+        return (
+            torch.zeros(1, self.obs_dim),
+            torch.zeros(1, *self.depth_shape),
+            torch.zeros(self.num_layers, 1, self.hidden_size),
+        )
+
+
+class ExportedDepthGRU(ExportedRecurrentPolicy):
     """Deterministic, stateless export of a :class:`DepthGRUModel` (TorchScript and ONNX).
 
     ``forward(obs (B, S), depth (B, C, H, W), h_in (L, B, Hd)) -> (actions (B, A), h_out (L, B, Hd))``: the state
@@ -53,25 +80,6 @@ class ExportedDepthGRU(nn.Module):
         x = torch.cat([self.obs_normalizer(obs), self.encoder(depth)], dim=-1)  # (B, S + F)
         y, h_out = self.gru(x.unsqueeze(0), h_in)  # (1, B, Hd), (L, B, Hd)
         return self.deterministic_output(self.mlp(y.squeeze(0))), h_out
-
-    @torch.jit.export
-    def initial_state(self, batch_size: int) -> torch.Tensor:
-        """Zero hidden state ``(L, batch_size, Hd)``."""
-        return torch.zeros(self.num_layers, batch_size, self.hidden_size)
-
-    @torch.jit.export
-    def reset(self) -> None:
-        """No-op (the state is an explicit input); kept because rsl-rl's exported policies have it."""
-        pass
-
-    @torch.jit.unused
-    def get_dummy_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Inputs for ONNX tracing: one env."""
-        return (
-            torch.zeros(1, self.obs_dim),
-            torch.zeros(1, *self.depth_shape),
-            torch.zeros(self.num_layers, 1, self.hidden_size),
-        )
 
 
 def export_policy(

@@ -26,12 +26,12 @@ import torch.nn as nn
 
 from envs.config import to_dict, to_yaml
 from shield_nav.evaluation.policies import POLICY_ENV_SECTIONS, _sha256
-from shield_nav.policies.export import ExportedDepthGRU, export_module
+from shield_nav.policies.export import ExportedDepthGRU, ExportedRecurrentPolicy, export_module
 
 __all__ = ["ExportedEnsemble", "build_ensemble", "member_checkpoint"]
 
 
-class ExportedEnsemble(nn.Module):
+class ExportedEnsemble(ExportedRecurrentPolicy):
     """K exported depth actors as one: the mean of their clipped actions, the hidden states side by side.
 
     ``h_in`` is ``(L, B, K * Hd)``; member ``k`` reads and writes ``[..., k * Hd : (k + 1) * Hd]``. A zero ``h_in``
@@ -72,25 +72,6 @@ class ExportedEnsemble(nn.Module):
             acts.append(torch.clamp(a, -1.0, 1.0))
             outs.append(h)
         return torch.stack(acts, dim=0).mean(dim=0), torch.cat(outs, dim=2)
-
-    @torch.jit.export
-    def initial_state(self, batch_size: int) -> torch.Tensor:
-        """Zero hidden state ``(L, batch_size, K * Hd)``."""
-        return torch.zeros(self.num_layers, batch_size, self.hidden_size)
-
-    @torch.jit.export
-    def reset(self) -> None:
-        """No-op (the state is an explicit input), as for a single exported policy."""
-        pass
-
-    @torch.jit.unused
-    def get_dummy_inputs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Inputs for ONNX tracing: one env."""
-        return (
-            torch.zeros(1, self.obs_dim),
-            torch.zeros(1, *self.depth_shape),
-            torch.zeros(self.num_layers, 1, self.hidden_size),
-        )
 
 
 def member_checkpoint(path: str) -> str:

@@ -156,7 +156,7 @@ class EvalConfig:
     process that is not pinned (a training pipeline's selection, :func:`~shield_nav.evaluation.evaluate` from your
     own code) runs the same network with the kernels that process has; its manifest records them. ``export``: the
     exported file found (``policy.onnx`` through onnxruntime, else TorchScript ``policy.pt``) with the processor's
-    fastest kernels (the network about 7 x cheaper per env and step), whose sums differ in the last bits from one
+    fastest kernels (the network about 4 x cheaper per env and step), whose sums differ in the last bits from one
     processor kind to another."""
     missing_checkpoints: str = "error"
     """``error``: a row whose checkpoint is missing stops the run. ``skip``: the row is shown as missing."""

@@ -6,11 +6,17 @@ processor kind to another, and closed-loop flight grows such differences into ot
 trials end otherwise when only the network's kernels change; docs/evaluation.md, "Reproducing a table"). This module
 runs the same weights (read from a training checkpoint ``model*.pt`` through
 :func:`shield_nav.training.actor.actor_from_checkpoint`, which needs no TorchScript and is what a packaged folder is
-read through, or from the TorchScript export ``policy.pt``) with plain loops compiled
-by numba without ``fastmath``: every sum runs in one written order in float64, no operation is fused or reassociated,
-and the exponential is this module's own polynomial (libm's may differ between its FMA and non-FMA variants). So the
-actions are the same bits on every processor numba compiles for; the test suite checks that a baseline x86-64 build
-(``NUMBA_CPU_NAME=generic``) gives the host build's bits.
+read through, or from the TorchScript export ``policy.pt``) with loops compiled by numba without ``fastmath``: every
+sum runs in one written order in float64, no operation is fused or reassociated, and the exponential is this module's
+own polynomial (libm's may differ between its FMA and non-FMA variants). So the actions are the same bits on every
+processor numba compiles for; the test suite checks that a baseline x86-64 build (``NUMBA_CPU_NAME=generic``) gives
+the host build's bits.
+
+The convolutions and linear layers, most of the cost, run as explicit LLVM vector instructions (numba intrinsics
+that multiply and add LANES neighbouring outputs at once, each lane its own sum in the written order, their
+accumulators kept in registers): a vector multiply or add rounds every lane as the scalar instruction would, so
+the bits are those of the scalar loops (:mod:`shield_nav.evaluation.vector_kernels`), at about 2.6 x the speed of
+the loops that stored every partial sum to memory (``python -m shield_nav.bench network``).
 
 The layers are those of :class:`shield_nav.policies.models.DepthGRUModel` exports: the state normaliser, the convolution
 stack (``Conv2d``, ``ReLU``, ``MaxPool2d(2)``), ``Flatten -> Linear -> ReLU``, a GRU (any number of layers, PyTorch's
@@ -21,11 +27,14 @@ Anything else is refused by name when the file is loaded.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any
 
 import numba
 import numpy as np
+
+from shield_nav.evaluation.vector_kernels import CHUNK, LANES, affine, conv_direct, conv_strided
 
 _LN2_HI = 6.93147180369123816490e-01  # ln 2 split so that k * _LN2_HI is exact for |k| < 2^20 (fdlibm's split)
 _LN2_LO = 1.90821492927058770002e-10
@@ -71,68 +80,71 @@ def _tanh(x: float) -> float:
 
 
 @numba.njit(cache=True)
-def _im2col(x: np.ndarray, k: int, stride: int, pad: int, ho: int, wo: int, out: np.ndarray) -> None:
-    """Patches of ``x`` (C, N, H, W) as columns of ``out`` (C * k * k, N * ho * wo).
+def _crop(raw: np.ndarray, pitch: int, length: int, relu: bool, out: np.ndarray) -> None:
+    """``out[o, i, y, x] = raw[o, i length + y pitch + x]``, through ``ReLU`` if ``relu``.
 
-    Row (c, ky, kx), the order of ``nn.Conv2d``'s weights; the zero padding as zeros.
+    The ReLU keeps NaN and gives +0 for -0, as numpy's vector ``maximum(v, 0)`` does.
     """
-    c_in, n_b, h, wd = x.shape
-    row = 0
-    for c in range(c_in):
-        for ky in range(k):
-            for kx in range(k):
-                dst = out[row]
-                for i in range(n_b):
-                    for oy in range(ho):
-                        iy = oy * stride - pad + ky
-                        base = (i * ho + oy) * wo
-                        for ox in range(wo):
-                            ix = ox * stride - pad + kx
-                            dst[base + ox] = x[c, i, iy, ix] if 0 <= iy < h and 0 <= ix < wd else 0.0
-                row += 1
+    c, n_b, ho, wo = out.shape
+    for o in range(c):
+        for i in range(n_b):
+            for y in range(ho):
+                base = i * length + y * pitch
+                for x in range(wo):
+                    v = raw[o, base + x]
+                    out[o, i, y, x] = v if not relu or v > 0.0 or v != v else 0.0
 
 
-@numba.njit(cache=True)
-def _conv_rows(cols: np.ndarray, w: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """``out[o] = b[o] + sum over j of w[o, j] cols[j]``: the convolution as one product.
+class _Workspace:
+    """Arrays a layer reuses from one call to the next at the same batch size (one set per thread)."""
 
-    Each output's sum runs from the first patch row to the last. Four output channels share each pass over a patch
-    row, and the innermost loop runs over pixels: neighbouring pixels are summed side by side in separate
-    accumulators, none reassociated.
+    def __init__(self) -> None:
+        self._local = threading.local()
+
+    def get(self, key: tuple, shape: tuple[int, ...], zeros: bool = False, dtype: type = np.float64) -> np.ndarray:
+        """The array named ``key`` of ``shape``, made when first asked for.
+
+        Zero-filled when made with ``zeros`` (always for an integer ``dtype``).
+        """
+        store = self._local.__dict__.setdefault("arrays", {})
+        arr = store.get(key)
+        if arr is None or arr.shape != shape:
+            arr = np.zeros(shape, dtype) if zeros or dtype != np.float64 else np.empty(shape)
+            store[key] = arr
+        return arr
+
+
+def _convolve(x: np.ndarray, c: _Conv, work: _Workspace, layer: int) -> np.ndarray:
+    """``nn.Conv2d`` of ``x`` (C, N, H, W) with ``c``'s weights, and its ReLU: (C_out, N, ho, wo).
+
+    Each output's sum runs in the order of the weights (c, ky, kx). The result is ``work``'s array: it holds until
+    the next call for this layer.
     """
-    n_out, n_in = w.shape
-    r = cols.shape[1]
-    o = 0
-    while o < n_out:
-        m = min(4, n_out - o)
-        d0, d1, d2, d3 = out[o], out[o + min(1, m - 1)], out[o + min(2, m - 1)], out[o + min(3, m - 1)]
-        for q in range(r):
-            d0[q] = b[o]
-        if m == 4:
-            for q in range(r):
-                d1[q] = b[o + 1]
-                d2[q] = b[o + 2]
-                d3[q] = b[o + 3]
-            for j in range(n_in):
-                w0, w1, w2, w3 = w[o, j], w[o + 1, j], w[o + 2, j], w[o + 3, j]
-                src = cols[j]
-                for q in range(r):
-                    v = src[q]
-                    d0[q] += w0 * v
-                    d1[q] += w1 * v
-                    d2[q] += w2 * v
-                    d3[q] += w3 * v
-        else:  # the last channels one at a time
-            for t in range(m):
-                dst = out[o + t]
-                for q in range(r):
-                    dst[q] = b[o + t]
-                for j in range(n_in):
-                    wv = w[o + t, j]
-                    src = cols[j]
-                    for q in range(r):
-                        dst[q] += wv * src[q]
-        o += m
+    n_in, n_b, h, wd = x.shape
+    k, s, pad = c.kernel, c.stride, c.pad
+    ho, wo = (h + 2 * pad - k) // s + 1, (wd + 2 * pad - k) // s + 1
+    n_out = c.w_t.shape[1]
+    if s != 1:
+        raw = work.get(("raw", layer), (n_out, -(-n_b * ho * wo // CHUNK) * CHUNK))
+        conv_strided(x, k, s, pad, ho, wo, c.w_t, c.b, raw)
+        pitch, length = wo, ho * wo
+    else:
+        hp, wp = h + 2 * pad, wd + 2 * pad
+        plane = hp * wp
+        length = -(-ho * wp // LANES) * LANES  # the outputs of one image, rows of wp, in whole vectors
+        # the padding stays zero: only the image's part is written; room for the last vector's reads past it
+        xp = work.get(("padded", layer), (n_in * n_b * plane + LANES + k,), zeros=True)
+        xp[: n_in * n_b * plane].reshape(n_in, n_b, hp, wp)[:, :, pad : pad + h, pad : pad + wd] = x
+        off = work.get(("offsets", layer, n_b), (n_in * k * k,), dtype=np.int64)
+        if off[-1] == 0:  # made just now: each patch value's place relative to the patch's first
+            cc, ky, kx = np.meshgrid(np.arange(n_in), np.arange(k), np.arange(k), indexing="ij")
+            off[:] = (cc * (n_b * plane) + ky * wp + kx).reshape(-1)
+        raw = work.get(("raw", layer), (n_out, n_b * length))
+        conv_direct(xp, off, c.w_t, c.b, raw, n_b, plane, length)
+        pitch = wp
+    out = work.get(("out", layer), (n_out, n_b, ho, wo))
+    _crop(raw, pitch, length, c.relu, out)
+    return out
 
 
 @numba.njit(cache=True)
@@ -148,23 +160,6 @@ def _max_pool2(x: np.ndarray, out: np.ndarray) -> None:
                         if v > a or v != v:
                             a = v
                     out[o, i, y, xx] = a
-
-
-@numba.njit(cache=True)
-def _affine(x: np.ndarray, w_t: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """``out[n] = b + sum over j of x[n, j] w_t[j]``, each output's sum from the first input to the last.
-
-    ``w_t`` is the weight transposed (inputs, outputs), so the innermost loop runs over outputs side by side.
-    """
-    n_b, n_in = x.shape
-    for i in range(n_b):
-        acc = out[i]
-        acc[:] = b
-        for j in range(n_in):
-            xv = x[i, j]
-            wrow = w_t[j]
-            for o in range(acc.shape[0]):
-                acc[o] += xv * wrow[o]
 
 
 @numba.njit(cache=True)
@@ -200,8 +195,8 @@ ACTIVATIONS = {"ReLU": 1, "ELU": 2, "Tanh": 3}
 
 @dataclass
 class _Conv:
-    w: np.ndarray
-    """Weights (C_out, C_in * k * k), columns ordered (c, ky, kx)."""
+    w_t: np.ndarray
+    """Weights transposed (C_in * k * k, C_out), rows ordered (c, ky, kx)."""
     b: np.ndarray
     kernel: int
     stride: int
@@ -229,9 +224,34 @@ def _children(module: Any) -> list[tuple[str, Any]]:
     return list(module._modules.items())
 
 
-def _t(weight: Any) -> np.ndarray:
-    """A Linear weight (outputs, inputs) as float64 (inputs, outputs), the layout :func:`_affine` reads."""
-    return np.ascontiguousarray(_f64(weight).T)
+@dataclass
+class _Linear:
+    """A Linear layer in the layout :func:`affine` reads."""
+
+    w_t: np.ndarray
+    """The weight transposed (inputs, outputs), float64, its outputs padded with zero columns to whole vectors."""
+    b: np.ndarray
+    """The bias, padded with zeros as ``w_t``'s columns."""
+    n_out: int
+    """Outputs before the padding."""
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """``x (N, inputs) -> (N, n_out)``: a view of a padded, C-contiguous result."""
+        out = np.empty((x.shape[0], self.w_t.shape[1]))
+        affine(np.ascontiguousarray(x), self.w_t, self.b, out)
+        return out[:, : self.n_out]
+
+
+def _t(weight: Any, bias: Any) -> _Linear:
+    """A Linear layer's weight (outputs, inputs) and bias, read as a :class:`_Linear`."""
+    w = _f64(weight)
+    n_out, n_in = w.shape
+    width = -(-n_out // LANES) * LANES
+    w_t = np.zeros((n_in, width))
+    w_t[:, :n_out] = w.T
+    b = np.zeros(width)
+    b[:n_out] = _f64(bias)
+    return _Linear(w_t, b, n_out)
 
 
 class FixedOrderActor:
@@ -249,6 +269,7 @@ class FixedOrderActor:
     def __init__(self, module: Any, file: str) -> None:
         """Read the weights of an export ``module`` (TorchScript or eager); ``file`` names it in errors."""
         self.file = file
+        self._work = _Workspace()
 
         def refuse(what: str) -> None:
             raise ValueError(f"network 'fixed_order': {file!r} has {what}, which the fixed-order runtime does not run "
@@ -278,7 +299,7 @@ class FixedOrderActor:
                     refuse(f"a non-square convolution (encoder.conv.{name})")
                 w = _f64(layer.weight)
                 b = _f64(layer.bias) if layer.bias is not None else np.zeros(w.shape[0])
-                self.convs.append(_Conv(np.ascontiguousarray(w.reshape(w.shape[0], -1)), b, int(w.shape[2]),
+                self.convs.append(_Conv(np.ascontiguousarray(w.reshape(w.shape[0], -1).T), b, int(w.shape[2]),
                                         int(st[0]), int(pd[0]), False, False))  # fmt: skip
             elif kind == "ReLU" and self.convs and not self.convs[-1].pool:
                 self.convs[-1].relu = True
@@ -291,32 +312,31 @@ class FixedOrderActor:
         if proj != ["Flatten", "Linear", "ReLU"]:
             refuse(f"an encoder projection {proj}")
         lin = getattr(module.encoder.proj, "1")
-        self.proj = (_t(lin.weight), _f64(lin.bias))
+        self.proj = _t(lin.weight, lin.bias)
         self.num_layers, self.hidden_size = int(module.num_layers), int(module.hidden_size)
         self.gru = []
         for k in range(self.num_layers):
             g = module.gru
-            self.gru.append((_t(getattr(g, f"weight_ih_l{k}")), _t(getattr(g, f"weight_hh_l{k}")),
-                             _f64(getattr(g, f"bias_ih_l{k}")), _f64(getattr(g, f"bias_hh_l{k}"))))  # fmt: skip
+            self.gru.append((_t(getattr(g, f"weight_ih_l{k}"), getattr(g, f"bias_ih_l{k}")),
+                             _t(getattr(g, f"weight_hh_l{k}"), getattr(g, f"bias_hh_l{k}"))))  # fmt: skip
         heads = dict(_children(module.mlp))
         core = heads.get("0") if "0" in heads and _kind(heads["0"]) == "MLP" else module.mlp
-        self.mlp: list[tuple[np.ndarray, np.ndarray, int]] = []
+        self.mlp: list[tuple[_Linear, int]] = []
         for name, layer in _children(core):
             kind = _kind(layer)
             if kind == "Linear":
-                self.mlp.append((_t(layer.weight), _f64(layer.bias), 0))
-            elif kind in ACTIVATIONS and self.mlp and self.mlp[-1][2] == 0:
-                w, b, _ = self.mlp[-1]
-                self.mlp[-1] = (w, b, ACTIVATIONS[kind])
+                self.mlp.append((_t(layer.weight, layer.bias), 0))
+            elif kind in ACTIVATIONS and self.mlp and self.mlp[-1][1] == 0:
+                self.mlp[-1] = (self.mlp[-1][0], ACTIVATIONS[kind])
             else:
                 refuse(f"a head layer {kind!r} ({name})")
         select = heads.get("1") if core is not module.mlp else None
         if select is not None and _kind(select) != "HypothesisSelect":
             refuse(f"a head selection {_kind(select)!r}")
         self.num_hypotheses = int(select.num_hypotheses) if select is not None else 1
-        self.action_dim = int(select.action_dim) if select is not None else int(self.mlp[-1][0].shape[1])
-        if select is not None and self.mlp[-1][0].shape[1] != self.num_hypotheses * (self.action_dim + 1):
-            refuse(f"a head of {self.mlp[-1][0].shape[1]} outputs for {self.num_hypotheses} hypotheses")
+        self.action_dim = int(select.action_dim) if select is not None else self.mlp[-1][0].n_out
+        if select is not None and self.mlp[-1][0].n_out != self.num_hypotheses * (self.action_dim + 1):
+            refuse(f"a head of {self.mlp[-1][0].n_out} outputs for {self.num_hypotheses} hypotheses")
 
     def forward(self, state: np.ndarray, depth: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The head's raw outputs (N, K (A + 1)) and the new hidden state (L, N, Hd), both float64."""
@@ -325,44 +345,28 @@ class FixedOrderActor:
             mean, std, eps = self.norm
             x = (x - mean) / (std + eps)  # elementwise: one rounding per value on every processor
         img = np.ascontiguousarray(np.asarray(depth, dtype=np.float64).transpose(1, 0, 2, 3))  # (C, N, H, W)
-        n_b = img.shape[1]
-        for c in self.convs:
-            k = c.kernel
-            ho = (img.shape[2] + 2 * c.pad - k) // c.stride + 1
-            wo = (img.shape[3] + 2 * c.pad - k) // c.stride + 1
-            cols = np.empty((img.shape[0] * k * k, n_b * ho * wo))
-            _im2col(img, k, c.stride, c.pad, ho, wo, cols)
-            out = np.empty((c.w.shape[0], n_b * ho * wo))
-            _conv_rows(cols, c.w, c.b, out)
-            if c.relu:
-                np.maximum(out, 0.0, out=out)
-            out = out.reshape(-1, n_b, ho, wo)
+        for layer, c in enumerate(self.convs):
+            out = _convolve(img, c, self._work, layer)
             if c.pool:
-                pooled = np.empty((out.shape[0], n_b, ho // 2, wo // 2))
+                pooled = self._work.get(("pooled", layer), (out.shape[0], out.shape[1], out.shape[2] // 2,
+                                                            out.shape[3] // 2))  # fmt: skip
                 _max_pool2(out, pooled)
                 out = pooled
             img = out
         img = np.ascontiguousarray(img.transpose(1, 0, 2, 3))  # (N, C, H, W): flattened in nn.Flatten's order
-        feat = np.empty((img.shape[0], self.proj[0].shape[1]))
-        _affine(np.ascontiguousarray(img.reshape(img.shape[0], -1)), self.proj[0], self.proj[1], feat)
+        feat = self.proj(img.reshape(img.shape[0], -1))
         _activate(feat, 1)
-        y = np.ascontiguousarray(np.concatenate((x, feat), axis=1))
+        y = np.concatenate((x, feat), axis=1)
         h_in = np.ascontiguousarray(h, dtype=np.float64)
         h_out = np.empty_like(h_in)
-        for k, (w_ih, w_hh, b_ih, b_hh) in enumerate(self.gru):
-            gi = np.empty((y.shape[0], w_ih.shape[1]))
-            gh = np.empty((y.shape[0], w_hh.shape[1]))
-            _affine(y, w_ih, b_ih, gi)
-            _affine(h_in[k], w_hh, b_hh, gh)
-            _gru_gates(gi, gh, h_in[k], h_out[k])
+        for k, (ih, hh) in enumerate(self.gru):
+            _gru_gates(ih(y), hh(h_in[k]), h_in[k], h_out[k])
             y = h_out[k]
-        for w, b, act in self.mlp:
-            out = np.empty((y.shape[0], w.shape[1]))
-            _affine(y, w, b, out)
+        for layer, act in self.mlp:
+            y = layer(y)
             if act:
-                _activate(out, act)
-            y = out
-        return y, h_out
+                _activate(y, act)
+        return np.ascontiguousarray(y), h_out
 
     def candidates(self, head: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(actions (N, K, A), scores (N, K))`` of a multi-hypothesis head (K = 1: the head is the action)."""

@@ -185,8 +185,8 @@ def test_the_eager_export_keeps_every_slot_of_a_shared_activation():
     assert len(list(core.named_children())) < len(core._modules)  # the sharing this test is about
     fixed = FixedOrderActor(module, "student")
     jit = FixedOrderActor(torch.jit.load(os.path.join(ROOT, "checkpoints", "student", "policy.pt")), "student")
-    assert [act for _, _, act in fixed.mlp] == [act for _, _, act in jit.mlp]
-    assert [act for _, _, act in fixed.mlp][:-1] == [ACTIVATIONS["ELU"]] * (len(fixed.mlp) - 1)
+    assert [act for _, act in fixed.mlp] == [act for _, act in jit.mlp]
+    assert [act for _, act in fixed.mlp][:-1] == [ACTIVATIONS["ELU"]] * (len(fixed.mlp) - 1)
 
 
 _SCRIPT = """
@@ -199,6 +199,87 @@ d = np.load(sys.argv[2])
 head, h = FixedOrderActor(m, sys.argv[1]).forward(d["state"], d["depth"], d["h"])
 np.savez(sys.argv[3], head=head, h=h)
 """
+
+
+def _ordered_conv(x, w, b, stride, pad):
+    """``nn.Conv2d`` in plain Python floats: each output's sum from the bias over (c, ky, kx) in order, one rounded
+    multiply and one rounded add per term (the order the fixed-order runtime promises)."""
+    c_in, n_b, h, wd = x.shape
+    n_out, _, k, _ = w.shape
+    ho, wo = (h + 2 * pad - k) // stride + 1, (wd + 2 * pad - k) // stride + 1
+    out = np.empty((n_out, n_b, ho, wo))
+    for o in range(n_out):
+        for i in range(n_b):
+            for oy in range(ho):
+                for ox in range(wo):
+                    acc = float(b[o])
+                    for c in range(c_in):
+                        for ky in range(k):
+                            for kx in range(k):
+                                iy, ix = oy * stride - pad + ky, ox * stride - pad + kx
+                                v = float(x[c, i, iy, ix]) if 0 <= iy < h and 0 <= ix < wd else 0.0
+                                acc += float(w[o, c, ky, kx]) * v
+                    out[o, i, oy, ox] = acc
+    return out
+
+
+@pytest.mark.parametrize(("c_out", "k", "stride", "pad"), [(11, 3, 1, 1), (8, 4, 4, 0), (5, 3, 2, 1), (16, 2, 1, 0)])
+def test_the_vector_convolution_gives_the_ordered_sums_bits(c_out, k, stride, pad):
+    """The convolution's vector kernels (direct for stride 1, gathered patches otherwise; whole tiles of 8 output
+    channels and the channels past them one by one) against the ordered sums in Python, bit for bit, ReLU
+    included; a second batch size through the same workspace, then the first again."""
+    from shield_nav.evaluation.fixed_order import _Conv, _convolve, _Workspace
+
+    rng = np.random.default_rng(c_out + k)
+    w = rng.normal(size=(c_out, 3, k, k))
+    b = rng.normal(size=c_out)
+    conv = _Conv(np.ascontiguousarray(w.reshape(c_out, -1).T), b, k, stride, pad, True, False)
+    work = _Workspace()
+    for n_b in (2, 3, 2):
+        x = rng.normal(size=(3, n_b, 9, 13))
+        want = np.maximum(_ordered_conv(x, w, b, stride, pad), 0.0)
+        got = _convolve(x, conv, work, 0)
+        assert got.shape == want.shape
+        assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+def test_the_vector_linear_layer_gives_the_ordered_sums_bits():
+    """A linear layer through the 4-row by 4-vector tiles, a leftover vector and leftover rows (6 rows, 45 outputs
+    padded to 48), against the ordered sums in Python, bit for bit."""
+    from shield_nav.evaluation.fixed_order import _t
+
+    rng = np.random.default_rng(7)
+    w, b, x = rng.normal(size=(45, 19)), rng.normal(size=45), rng.normal(size=(6, 19))
+    want = np.empty((6, 45))
+    for i in range(6):
+        for o in range(45):
+            acc = float(b[o])
+            for j in range(19):
+                acc += float(x[i, j]) * float(w[o, j])
+            want[i, o] = acc
+    got = _t(torch.from_numpy(w), torch.from_numpy(b))(x)
+    assert got.shape == (6, 45)
+    assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+@pytest.mark.parametrize(("name", "digest"), [
+    ("full", "1a862f17420a7bd2d28ddb0b6eec075406da929389ba42df176acf1d332c557d"),
+    ("student", "61f47e6d6802a6f3f917964cb0b5c8d1ff6005ce6edc60fa8bda6edb7447e41b"),
+])  # fmt: skip
+def test_the_shipped_policies_give_the_bits_that_flew_the_tables(name, digest):
+    """The SHA-256 of a shipped policy's head and hidden state on a seeded batch, as computed by the scalar loops
+    that flew every table (git 10ea86d, before the vector kernels): the runtime's speed-ups may not move a bit.
+    A new release changes the weights, and with them these digests."""
+    import hashlib
+
+    pol = E.load_policy(os.path.join(ROOT, "checkpoints", name), "p", network="fixed_order")
+    info = pol.info
+    rng = np.random.default_rng(2026)
+    state = rng.normal(size=(7, info.obs_dim)).astype(np.float32)
+    depth = (8.0 * rng.uniform(size=(7, *info.depth_shape))).astype(np.float32)
+    h = (0.3 * rng.normal(size=(info.num_layers, 7, info.hidden_size))).astype(np.float32)
+    head, h_out = pol._runner.forward(state, depth, h)
+    assert hashlib.sha256(head.tobytes() + h_out.tobytes()).hexdigest() == digest
 
 
 def test_a_baseline_x86_64_build_gives_the_host_builds_bits(tmp_path):

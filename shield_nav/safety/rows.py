@@ -13,6 +13,8 @@ import math
 import numba as nb
 import numpy as np
 
+from shield_nav.safety.sectors import elevation_bounds, sector
+
 PASSING_MIN_SPEED = 0.5
 """[m/s] Below this speed the braking barrier's collision-cone union is off (its row divides by |v|)."""
 PASSING_MIN_S = 0.05
@@ -459,7 +461,8 @@ def _select(
     i.e. how much the raw command satisfies that point's HOCBF row (negative = violated). With ``use_lag`` each
     point has a second row, the same barrier at the state predicted one lag ahead (p_lag, v_lag; ``lag_s``), unless
     that prediction has passed the point ((p_lag - o).(p - o) <= 0, where its row would push towards it); the point
-    competes with its tighter row. Points are binned by the azimuth/elevation of o - p; each bin keeps its smallest
+    competes with its tighter row. Points are binned by the azimuth/elevation of o - p (``sectors.exact_sector``,
+    computed by ``sectors.sector``); each bin keeps its smallest
     margin, and the k_max smallest bins are written to out_r (k_max, 3) in increasing margin order, with their
     HOCBF right-hand sides b (see ``hocbf_rows``) in out_b, and the smallest margin in out_min[0] (negative: the
     raw command violates a selected row, so the shield must act), and the selected points in out_o. Returns how
@@ -476,7 +479,7 @@ def _select(
     best_i = np.full(n_sec, -1)
     best_lag = np.zeros(n_sec, dtype=np.bool_)
     best_row = np.full(n_sec, -1)
-    two_pi = 2.0 * math.pi
+    el_bounds = elevation_bounds(n_el)
     k = _consts(v, p_lag, a_raw, v_lag, r_safe, brake)
     braking = k[15] > 0.5
     nr = 0
@@ -498,11 +501,7 @@ def _select(
         else:
             m, lagged = _tighter_margin(points[i, 0], points[i, 1], points[i, 2], rx, ry, rz, k, use_lag, alpha0,
                                         alpha1)  # fmt: skip
-        az = math.atan2(-ry, -rx) + math.pi  # direction o - p, in [0, 2 pi]
-        el = math.asin(min(1.0, max(-1.0, -rz / max(d, 1e-12)))) + 0.5 * math.pi  # [0, pi]
-        ia = min(int(az / two_pi * n_az), n_az - 1)
-        ie = min(int(el / math.pi * n_el), n_el - 1)
-        s = ie * n_az + ia
+        s = sector(rx, ry, rz, d, n_az, n_el, el_bounds)  # exact_sector's integer, mostly without atan2 / asin
         if m < best_m[s]:
             best_m[s] = m
             best_i[s] = i

@@ -14,7 +14,19 @@ from shield_nav.openmp import limit_spinning
 
 limit_spinning()  # as train.py and eval.py do, so a timing measures what they run (shield_nav/openmp.py)
 
-BENCHMARKS = ("vehicle", "fields", "depth", "env", "train", "shield", "expert", "startup", "network", "deploy")
+BENCHMARKS = (
+    "vehicle",
+    "fields",
+    "depth",
+    "env",
+    "train",
+    "shield",
+    "expert",
+    "startup",
+    "network",
+    "deploy",
+    "flights",
+)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -15,6 +15,10 @@ but a vanishing share of points:
 Away from the boundaries the floating-point rounding of the exact formula (a few ulps) cannot move the truncation,
 so both give one integer; the tests compare them on millions of directions, boundary ones included, and a flight
 through the shield repeats trial for trial.
+
+``_select`` inlines :func:`sector`, and numba's on-disk cache keys a kernel on its own file: after editing this
+module remove the cached kernels (``shield_nav/safety/__pycache__/*.nb?``), or the cached ``_select`` keeps the old
+code (``tests/shield_nav/test_sectors.py`` checks the compiled selection against its source).
 """
 
 from __future__ import annotations

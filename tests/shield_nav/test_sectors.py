@@ -74,3 +74,24 @@ def test_the_azimuth_polynomial_stays_far_inside_its_margin():
     g = np.linspace(-1.0, 1.0, 1201)
     err = max(abs(_atan2(float(y), float(x)) - math.atan2(y, x)) for x in g for y in g if (x, y) != (0.0, 0.0))
     assert err < 3e-7 and 30 * err <= AZ_MARGIN
+
+
+def test_the_compiled_selection_is_its_source(monkeypatch):
+    """The row selection as compiled (possibly read from numba's on-disk cache) against its Python source run line by
+    line, on a random cloud, with and without the lagged rows. ``_select`` inlines ``sectors.sector`` from another
+    file, and numba's cache keys a kernel on its own file only: after an edit of sectors.py a stale cached
+    ``_select`` would fail here (clear the ``__pycache__`` folders' ``*.nbi`` / ``*.nbc`` files)."""
+    import shield_nav.safety.shield as sh
+    from shield_nav.safety.rows import _select
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-4.0, 4.0, size=(600, 3)) + np.array([3.0, 0.0, 1.5])
+    p, v, a = np.array([0.0, 0.0, 1.5]), np.array([4.0, 0.5, 0.0]), np.array([1.0, -2.0, 0.5])
+    for lagged in (None, (p + 0.04 * v, v + 0.04 * a)):
+        compiled = sh.HOCBFShield().constraints(pts, p, v, a, lagged)
+        monkeypatch.setattr(sh, "_select", _select.py_func)
+        source = sh.HOCBFShield().constraints(pts, p, v, a, lagged)
+        monkeypatch.undo()
+        assert len(compiled[0]) > 1
+        for x, y in zip(compiled, source, strict=True):
+            assert np.array_equal(x, y)

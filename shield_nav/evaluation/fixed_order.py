@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,22 +97,25 @@ def _crop(raw: np.ndarray, pitch: int, length: int, relu: bool, out: np.ndarray)
 
 
 class _Workspace:
-    """Arrays a layer reuses from one call to the next at the same batch size (one set per thread)."""
+    """Arrays the layers reuse from one call to the next, one set per thread.
+
+    Each is kept under a key that names every size its contents depend on; a policy flies one batch size per unit,
+    so few are made.
+    """
 
     def __init__(self) -> None:
         self._local = threading.local()
 
-    def get(self, key: tuple, shape: tuple[int, ...], zeros: bool = False, dtype: type = np.float64) -> np.ndarray:
-        """The array named ``key`` of ``shape``, made when first asked for.
-
-        Zero-filled when made with ``zeros`` (always for an integer ``dtype``).
-        """
+    def get(self, key: tuple, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """The array under ``key``, made by ``make()`` the first time."""
         store = self._local.__dict__.setdefault("arrays", {})
-        arr = store.get(key)
-        if arr is None or arr.shape != shape:
-            arr = np.zeros(shape, dtype) if zeros or dtype != np.float64 else np.empty(shape)
-            store[key] = arr
-        return arr
+        if key not in store:
+            store[key] = make()
+        return store[key]
+
+    def empty(self, key: tuple, shape: tuple[int, ...]) -> np.ndarray:
+        """An array of ``shape`` that every call overwrites whole (its contents carry nothing over)."""
+        return self.get((*key, shape), lambda: np.empty(shape))
 
 
 def _convolve(x: np.ndarray, c: _Conv, work: _Workspace, layer: int) -> np.ndarray:
@@ -125,24 +129,27 @@ def _convolve(x: np.ndarray, c: _Conv, work: _Workspace, layer: int) -> np.ndarr
     ho, wo = (h + 2 * pad - k) // s + 1, (wd + 2 * pad - k) // s + 1
     n_out = c.w_t.shape[1]
     if s != 1:
-        raw = work.get(("raw", layer), (n_out, -(-n_b * ho * wo // CHUNK) * CHUNK))
+        raw = work.empty(("raw", layer), (n_out, -(-n_b * ho * wo // CHUNK) * CHUNK))
         conv_strided(x, k, s, pad, ho, wo, c.w_t, c.b, raw)
         pitch, length = wo, ho * wo
     else:
         hp, wp = h + 2 * pad, wd + 2 * pad
         plane = hp * wp
         length = -(-ho * wp // LANES) * LANES  # the outputs of one image, rows of wp, in whole vectors
-        # the padding stays zero: only the image's part is written; room for the last vector's reads past it
-        xp = work.get(("padded", layer), (n_in * n_b * plane + LANES + k,), zeros=True)
+        # zeros once: only the image's part is written again, so the padding stays zero; room for the last
+        # vector's reads past the last row
+        xp = work.get(("padded", layer, x.shape), lambda: np.zeros(n_in * n_b * plane + LANES + k))
         xp[: n_in * n_b * plane].reshape(n_in, n_b, hp, wp)[:, :, pad : pad + h, pad : pad + wd] = x
-        off = work.get(("offsets", layer, n_b), (n_in * k * k,), dtype=np.int64)
-        if off[-1] == 0:  # made just now: each patch value's place relative to the patch's first
+
+        def offsets() -> np.ndarray:  # each patch value's place relative to the patch's first, in the weights' order
             cc, ky, kx = np.meshgrid(np.arange(n_in), np.arange(k), np.arange(k), indexing="ij")
-            off[:] = (cc * (n_b * plane) + ky * wp + kx).reshape(-1)
-        raw = work.get(("raw", layer), (n_out, n_b * length))
+            return np.ascontiguousarray((cc * (n_b * plane) + ky * wp + kx).reshape(-1), dtype=np.int64)
+
+        off = work.get(("offsets", layer, x.shape), offsets)
+        raw = work.empty(("raw", layer), (n_out, n_b * length))
         conv_direct(xp, off, c.w_t, c.b, raw, n_b, plane, length)
         pitch = wp
-    out = work.get(("out", layer), (n_out, n_b, ho, wo))
+    out = work.empty(("out", layer), (n_out, n_b, ho, wo))
     _crop(raw, pitch, length, c.relu, out)
     return out
 
@@ -348,8 +355,8 @@ class FixedOrderActor:
         for layer, c in enumerate(self.convs):
             out = _convolve(img, c, self._work, layer)
             if c.pool:
-                pooled = self._work.get(("pooled", layer), (out.shape[0], out.shape[1], out.shape[2] // 2,
-                                                            out.shape[3] // 2))  # fmt: skip
+                c_o, n_o, h_o, w_o = out.shape
+                pooled = self._work.empty(("pooled", layer), (c_o, n_o, h_o // 2, w_o // 2))
                 _max_pool2(out, pooled)
                 out = pooled
             img = out

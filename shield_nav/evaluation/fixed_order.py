@@ -15,8 +15,7 @@ the host build's bits.
 The convolutions and linear layers, most of the cost, run as explicit LLVM vector instructions (numba intrinsics
 that multiply and add LANES neighbouring outputs at once, each lane its own sum in the written order, their
 accumulators kept in registers): a vector multiply or add rounds every lane as the scalar instruction would, so
-the bits are those of the scalar loops (:mod:`shield_nav.evaluation.vector_kernels`), at about 2.6 x the speed of
-the loops that stored every partial sum to memory (``python -m shield_nav.bench network``).
+the bits are those of the scalar loops (:mod:`shield_nav.evaluation.vector_kernels`).
 
 The layers are those of :class:`shield_nav.policies.models.DepthGRUModel` exports: the state normaliser, the convolution
 stack (``Conv2d``, ``ReLU``, ``MaxPool2d(2)``), ``Flatten -> Linear -> ReLU``, a GRU (any number of layers, PyTorch's

@@ -5,8 +5,7 @@ vector instructions: LANES neighbouring outputs (pixels of a convolution, output
 and added side by side, each lane its own sum in the written order, the accumulators kept in registers. A vector
 multiply or add rounds every lane as the scalar instruction does, and LLVM gets no fast-math flag, so nothing is
 fused (no FMA) or reassociated: the bits are those of the scalar loops (:func:`conv_lane`; the tests' ordered sums
-in Python) on every processor, and about 2.6 x faster than loops that store every partial sum (``python -m
-shield_nav.bench network``).
+in Python) on every processor. Their cost: ``python -m shield_nav.bench network``, docs/evaluation.md ("Cost").
 """
 
 from __future__ import annotations

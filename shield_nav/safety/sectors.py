@@ -2,9 +2,8 @@
 
 ``_select`` (:mod:`shield_nav.safety.rows`) keeps the tightest point of each azimuth / elevation sector of the
 direction o - p. Its sector is defined by :func:`exact_sector`: ``atan2`` and ``asin`` of the direction, scaled and
-truncated. Those two calls were half of the selection's time (about 38 of 78 us for 4,700 points, session 102),
-and the selection is the largest part of the shield. :func:`sector` gives the same integer without them for all
-but a vanishing share of points:
+truncated. Those two calls are costly beside the rest of a point's work (docs/shield.md, "Cost"); :func:`sector`
+gives the same integer without them for all but a vanishing share of points:
 
 - elevation: ``asin`` is increasing, so the sector is how many of the boundaries' sines ``-cos(k pi / n_el)`` the
   clamped ``-r_z / d`` reaches; a value within ``X_MARGIN`` of a boundary goes to :func:`exact_sector`;

@@ -21,7 +21,7 @@ from numba.extending import intrinsic
 LANES = 8
 """Doubles per vector of the kernels below: each vector instruction rounds every lane on its own, as scalar code."""
 TILE = 8
-"""Output channels of a convolution, or vectors of a linear layer's outputs (4 at most), one kernel call computes."""
+"""Output channels of a convolution one :func:`conv_tile` call computes (the linear layers tile by `_affine_kernel`)."""
 
 
 def _vec_type() -> ir.VectorType:
